@@ -1,0 +1,33 @@
+"""The data fabric: one protocol, two implementations that pass one contract suite."""
+
+from ._types import (
+    Fabric,
+    LivelinessChange,
+    LivelinessWatch,
+    Queryable,
+    QueryHandler,
+    QueryRequest,
+    Reply,
+    Sample,
+    Subscription,
+    Token,
+)
+from .memory import MemoryBus, MemoryFabric
+from .zenoh_fabric import ZenohConfig, ZenohFabric
+
+__all__ = [
+    "Fabric",
+    "LivelinessChange",
+    "LivelinessWatch",
+    "MemoryBus",
+    "MemoryFabric",
+    "QueryHandler",
+    "QueryRequest",
+    "Queryable",
+    "Reply",
+    "Sample",
+    "Subscription",
+    "Token",
+    "ZenohConfig",
+    "ZenohFabric",
+]

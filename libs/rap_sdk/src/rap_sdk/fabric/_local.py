@@ -1,0 +1,172 @@
+"""What both fabrics share: in-process routing, inbox-backed subscriptions and watches,
+queryable task hosting, and the lifecycle."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator, Callable
+from typing import Generic, TypeVar
+
+import anyio
+from anyio.abc import TaskGroup
+
+from ..errors import LifecycleError, QueryError
+from ..inbox import Inbox, InboxPolicy, InboxStats
+from ..keyexpr import intersects, validate
+from ._types import LivelinessChange, QueryHandler, QueryRequest, Reply, Sample
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+DEFAULT_POLICY = InboxPolicy()
+
+
+class InboxStream(Generic[T]):
+    """An async iterator over an inbox; closing it runs ``on_close`` once."""
+
+    def __init__(self, policy: InboxPolicy, on_close: Callable[[InboxStream[T]], None]) -> None:
+        self.inbox: Inbox[T] = Inbox(policy)
+        self._on_close = on_close
+
+    @property
+    def stats(self) -> InboxStats:
+        return self.inbox.stats
+
+    def __aiter__(self) -> AsyncIterator[T]:
+        return self._iterate()
+
+    async def _iterate(self) -> AsyncIterator[T]:
+        while True:
+            try:
+                item = await self.inbox.get()
+            except LifecycleError:
+                return
+            yield item
+
+    async def get(self) -> T:
+        return await self.inbox.get()
+
+    def close(self) -> None:
+        if not self.inbox.closed:
+            self.inbox.close()
+            self._on_close(self)
+
+    def __enter__(self) -> InboxStream[T]:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class LocalSubscription(InboxStream[Sample]):
+    def __init__(
+        self,
+        key_expr: str,
+        policy: InboxPolicy,
+        on_close: Callable[[InboxStream[Sample]], None],
+    ) -> None:
+        super().__init__(policy, on_close)
+        self.key_expr = key_expr
+        self.remote_handle: object | None = None
+
+
+class Router:
+    """In-process subscription table with a per-key match cache."""
+
+    _CACHE_MAX = 4096
+
+    def __init__(self) -> None:
+        self._subs: list[LocalSubscription] = []
+        self._cache: dict[str, tuple[LocalSubscription, ...]] = {}
+
+    def add(self, sub: LocalSubscription) -> None:
+        self._subs.append(sub)
+        self._cache.clear()
+
+    def remove(self, sub: LocalSubscription) -> None:
+        if sub in self._subs:
+            self._subs.remove(sub)
+            self._cache.clear()
+
+    def matching(self, key: str) -> tuple[LocalSubscription, ...]:
+        hit = self._cache.get(key)
+        if hit is None:
+            if len(self._cache) >= self._CACHE_MAX:
+                self._cache.clear()
+            hit = tuple(s for s in self._subs if intersects(s.key_expr, key))
+            self._cache[key] = hit
+        return hit
+
+    def all(self) -> list[LocalSubscription]:
+        return list(self._subs)
+
+
+class Lifecycle:
+    """NEW -> OPEN -> CLOSED with exact misuse errors, and the task group that hosts
+    queryable handlers."""
+
+    def __init__(self, what: str) -> None:
+        self._what = what
+        self._state = "new"
+        self._tg: TaskGroup | None = None
+
+    @property
+    def is_open(self) -> bool:
+        return self._state == "open"
+
+    def check_open(self) -> None:
+        if self._state == "new":
+            raise LifecycleError(f"{self._what} is not open: use 'async with {self._what}(...)'")
+        if self._state == "closed":
+            raise LifecycleError(f"{self._what} is closed; open a new one")
+
+    def opening(self, tg: TaskGroup) -> None:
+        if self._state != "new":
+            raise LifecycleError(f"{self._what} can be opened once; it is {self._state}")
+        self._tg = tg
+        self._state = "open"
+
+    def closing(self) -> None:
+        self._state = "closed"
+        self._tg = None
+
+    @property
+    def task_group(self) -> TaskGroup:
+        self.check_open()
+        assert self._tg is not None
+        return self._tg
+
+
+async def answer(handler: QueryHandler, request: QueryRequest, timeout: float) -> list[Reply]:
+    """Run a queryable handler under a deadline; failures become error replies."""
+    try:
+        with anyio.fail_after(timeout):
+            return list(await handler(request))
+    except TimeoutError:
+        reason = f"queryable handler for {request.key!r} took longer than {timeout} s"
+    except QueryError as exc:
+        reason = str(exc)
+    except Exception as exc:  # a handler bug must not kill the fabric
+        log.exception("queryable handler for %r failed", request.key)
+        reason = f"{type(exc).__name__}: {exc}"
+    return [Reply(request.key, reason.encode(), ok=False)]
+
+
+def liveliness_stream(
+    capacity: int,
+    on_close: Callable[[InboxStream[LivelinessChange]], None],
+) -> InboxStream[LivelinessChange]:
+    return InboxStream(InboxPolicy(capacity=capacity), on_close)
+
+
+__all__ = [
+    "DEFAULT_POLICY",
+    "InboxStream",
+    "Lifecycle",
+    "LocalSubscription",
+    "Router",
+    "answer",
+    "liveliness_stream",
+    "validate",
+]

@@ -1,0 +1,125 @@
+"""The Fabric protocol and the values that cross it."""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterable
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Protocol, Self, runtime_checkable
+
+from ..inbox import InboxPolicy, InboxStats
+
+__all__ = [
+    "Fabric",
+    "LivelinessChange",
+    "LivelinessWatch",
+    "QueryHandler",
+    "QueryRequest",
+    "Queryable",
+    "Reply",
+    "Sample",
+    "Subscription",
+    "Token",
+]
+
+
+@dataclass(frozen=True, slots=True)
+class Sample:
+    key: str
+    payload: bytes
+    remote: bool = False
+    """True when the sample came from another session (process)."""
+
+
+@dataclass(frozen=True, slots=True)
+class QueryRequest:
+    key: str
+    """The key expression of the query (may hold wildcards)."""
+    parameters: str
+    payload: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class Reply:
+    key: str
+    payload: bytes
+    ok: bool = True
+    """False for an error reply; ``payload`` then holds the UTF-8 reason."""
+
+
+@dataclass(frozen=True, slots=True)
+class LivelinessChange:
+    key: str
+    alive: bool
+
+
+QueryHandler = Callable[[QueryRequest], Awaitable[Iterable[Reply]]]
+
+
+class Subscription(Protocol):
+    key_expr: str
+
+    @property
+    def stats(self) -> InboxStats: ...
+    def __aiter__(self) -> AsyncIterator[Sample]: ...
+    async def get(self) -> Sample: ...
+    def close(self) -> None: ...
+
+
+class LivelinessWatch(Protocol):
+    def __aiter__(self) -> AsyncIterator[LivelinessChange]: ...
+    async def get(self) -> LivelinessChange: ...
+    def close(self) -> None: ...
+
+
+class Token(Protocol):
+    key: str
+
+    def undeclare(self) -> None: ...
+
+
+class Queryable(Protocol):
+    key_expr: str
+
+    def undeclare(self) -> None: ...
+
+
+@runtime_checkable
+class Fabric(Protocol):
+    """What RAP needs from a data fabric. Two implementations pass one contract suite:
+    :class:`~rap_sdk.fabric.ZenohFabric` and :class:`~rap_sdk.fabric.MemoryFabric`.
+
+    Open it with ``async with``; every method but ``publish``/``query`` is synchronous
+    and cheap. Samples published here reach subscribers of this fabric directly (no
+    network path) and subscribers elsewhere once.
+    """
+
+    @property
+    def id(self) -> str: ...
+
+    async def __aenter__(self) -> Self: ...
+
+    async def __aexit__(
+        self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
+    ) -> None: ...
+
+    async def publish(self, key: str, payload: bytes, *, timeout: float | None = None) -> None:
+        """Deliver ``payload`` on ``key``. Local FIFO inboxes with ``block`` make this
+        wait for room (at most ``timeout`` s)."""
+
+    def subscribe(self, key_expr: str, policy: InboxPolicy | None = None) -> Subscription: ...
+
+    def serve(self, key_expr: str, handler: QueryHandler) -> Queryable: ...
+
+    async def wait_matched(
+        self, key: str, *, queryable: bool = False, timeout: float = 5.0
+    ) -> None:
+        """Wait until another session has a subscriber (or queryable) matching ``key``."""
+
+    async def query(
+        self, selector: str, payload: bytes = b"", *, timeout: float = 2.0
+    ) -> list[Reply]: ...
+
+    def declare_token(self, key: str) -> Token: ...
+
+    def watch_liveliness(self, key_expr: str, *, capacity: int = 256) -> LivelinessWatch: ...

@@ -1,0 +1,263 @@
+"""MemoryFabric: an in-process, deterministic fabric for tests.
+
+Several MemoryFabrics on one :class:`MemoryBus` behave like several processes on one
+network: a sample published on one reaches its own subscribers directly (with
+backpressure) and the others' as remote samples (never waiting), once each. Delivery is
+immediate and in order, within the publishing call, so tests need no sleeps.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+from types import TracebackType
+
+import anyio
+
+from ..errors import FabricError, LifecycleError, QueryError
+from ..inbox import InboxPolicy
+from ..keyexpr import intersects, validate
+from ._local import (
+    DEFAULT_POLICY,
+    InboxStream,
+    Lifecycle,
+    LocalSubscription,
+    Router,
+    answer,
+    liveliness_stream,
+)
+from ._types import LivelinessChange, QueryHandler, Reply, Sample
+
+__all__ = ["MemoryBus", "MemoryFabric"]
+
+_ids = itertools.count(1)
+
+
+class MemoryBus:
+    """The shared medium of several MemoryFabrics."""
+
+    def __init__(self) -> None:
+        self.members: list[MemoryFabric] = []
+        self.tokens: dict[str, int] = {}
+        self.watches: list[tuple[str, InboxStream[LivelinessChange]]] = []
+        self.queryables: list[_MemQueryable] = []
+        self._changed: anyio.Event | None = None
+
+    async def wait_changed(self) -> None:
+        """Wait for the next subscription or queryable on the bus."""
+        if self._changed is None:
+            self._changed = anyio.Event()
+        await self._changed.wait()
+
+    def notify(self) -> None:
+        if self._changed is not None:
+            self._changed.set()
+            self._changed = None
+
+    def token_changed(self, key: str, delta: int) -> None:
+        before = self.tokens.get(key, 0)
+        after = before + delta
+        if after:
+            self.tokens[key] = after
+        else:
+            self.tokens.pop(key, None)
+        if (before == 0) != (after == 0):
+            for expr, stream in self.watches:
+                if intersects(expr, key):
+                    stream.inbox.offer(LivelinessChange(key, after > 0))
+
+
+class _MemToken:
+    def __init__(self, fabric: MemoryFabric, key: str) -> None:
+        self.key = key
+        self._fabric: MemoryFabric | None = fabric
+
+    def undeclare(self) -> None:
+        if self._fabric is not None:
+            self._fabric._tokens.remove(self)
+            self._fabric.bus.token_changed(self.key, -1)
+            self._fabric = None
+
+
+class _MemQueryable:
+    def __init__(self, fabric: MemoryFabric, key_expr: str, handler: QueryHandler) -> None:
+        self.key_expr = key_expr
+        self.handler = handler
+        self._fabric: MemoryFabric | None = fabric
+
+    def undeclare(self) -> None:
+        if self._fabric is not None:
+            self._fabric.bus.queryables.remove(self)
+            self._fabric._queryables.remove(self)
+            self._fabric = None
+
+
+class MemoryFabric:
+    def __init__(
+        self,
+        *,
+        bus: MemoryBus | None = None,
+        query_handler_timeout: float = 5.0,
+    ) -> None:
+        self.bus = bus if bus is not None else MemoryBus()
+        self._id = f"mem-{next(_ids)}"
+        self._router = Router()
+        self._life = Lifecycle("MemoryFabric")
+        self._tokens: list[_MemToken] = []
+        self._queryables: list[_MemQueryable] = []
+        self._watches: list[InboxStream[LivelinessChange]] = []
+        self._handler_timeout = query_handler_timeout
+        self._stack: contextlib.AsyncExitStack | None = None
+
+    @property
+    def id(self) -> str:
+        return self._id
+
+    async def __aenter__(self) -> MemoryFabric:
+        stack = contextlib.AsyncExitStack()
+        tg = await stack.enter_async_context(anyio.create_task_group())
+        self._life.opening(tg)
+        self._stack = stack
+        self.bus.members.append(self)
+        return self
+
+    async def __aexit__(
+        self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        if not self._life.is_open:
+            return
+        for tok in list(self._tokens):
+            tok.undeclare()
+        for q in list(self._queryables):
+            q.undeclare()
+        for sub in self._router.all():
+            sub.close()
+        for w in list(self._watches):
+            w.close()
+        self.bus.members.remove(self)
+        tg = self._life.task_group
+        tg.cancel_scope.cancel()
+        self._life.closing()
+        assert self._stack is not None
+        await self._stack.__aexit__(et, ev, tb)
+
+    async def publish(self, key: str, payload: bytes, *, timeout: float | None = None) -> None:
+        self._life.check_open()
+        sample = Sample(key, payload)
+        for sub in self._router.matching(key):
+            await sub.inbox.put(sample, timeout=timeout)
+        remote: Sample | None = None
+        for member in self.bus.members:
+            if member is self:
+                continue
+            for sub in member._router.matching(key):
+                if remote is None:
+                    remote = Sample(key, payload, remote=True)
+                sub.inbox.offer(remote)
+
+    def subscribe(self, key_expr: str, policy: InboxPolicy | None = None) -> LocalSubscription:
+        self._life.check_open()
+        validate(key_expr)
+
+        def closed(s: InboxStream[Sample]) -> None:
+            assert isinstance(s, LocalSubscription)
+            self._router.remove(s)
+
+        sub = LocalSubscription(key_expr, policy or DEFAULT_POLICY, closed)
+        self._router.add(sub)
+        self.bus.notify()
+        return sub
+
+    def serve(self, key_expr: str, handler: QueryHandler) -> _MemQueryable:
+        self._life.check_open()
+        validate(key_expr)
+        q = _MemQueryable(self, key_expr, handler)
+        self.bus.queryables.append(q)
+        self._queryables.append(q)
+        self.bus.notify()
+        return q
+
+    async def wait_matched(
+        self, key: str, *, queryable: bool = False, timeout: float = 5.0
+    ) -> None:
+        """Wait until another fabric on the bus has a subscriber (or queryable) matching
+        ``key``."""
+        self._life.check_open()
+        validate(key)
+
+        def matched() -> bool:
+            if queryable:
+                return any(
+                    intersects(q.key_expr, key)
+                    for q in self.bus.queryables
+                    if q._fabric is not self
+                )
+            return any(m._router.matching(key) for m in self.bus.members if m is not self)
+
+        try:
+            with anyio.fail_after(timeout):
+                while not matched():
+                    await self.bus.wait_changed()
+        except TimeoutError:
+            what = "queryable" if queryable else "subscriber"
+            raise FabricError(
+                f"no other fabric on the bus has a {what} matching {key!r} after {timeout} s"
+            ) from None
+
+    async def query(
+        self,
+        selector: str,
+        payload: bytes = b"",
+        *,
+        timeout: float = 2.0,
+    ) -> list[Reply]:
+        from ._types import QueryRequest
+
+        self._life.check_open()
+        key, _, params = selector.partition("?")
+        validate(key)
+        targets = [q for q in self.bus.queryables if intersects(q.key_expr, key)]
+        replies: list[Reply] = []
+        try:
+            with anyio.fail_after(timeout):
+                for q in targets:
+                    replies += await answer(
+                        q.handler, QueryRequest(key, params, payload), self._handler_timeout
+                    )
+        except TimeoutError:
+            raise QueryError(
+                f"query {selector!r} got no complete answer within {timeout} s"
+            ) from None
+        return replies
+
+    def declare_token(self, key: str) -> _MemToken:
+        self._life.check_open()
+        validate(key)
+        if "*" in key:
+            raise LifecycleError(f"a liveliness token needs a concrete key, got {key!r}")
+        tok = _MemToken(self, key)
+        self._tokens.append(tok)
+        self.bus.token_changed(key, +1)
+        return tok
+
+    def watch_liveliness(
+        self,
+        key_expr: str,
+        *,
+        capacity: int = 256,
+    ) -> InboxStream[LivelinessChange]:
+        self._life.check_open()
+        validate(key_expr)
+
+        def closed(stream: InboxStream[LivelinessChange]) -> None:
+            self.bus.watches[:] = [(e, s) for e, s in self.bus.watches if s is not stream]
+            if stream in self._watches:
+                self._watches.remove(stream)
+
+        stream = liveliness_stream(capacity, closed)
+        for key in sorted(self.bus.tokens):
+            if intersects(key_expr, key):
+                stream.inbox.offer(LivelinessChange(key, True))
+        self.bus.watches.append((key_expr, stream))
+        self._watches.append(stream)
+        return stream

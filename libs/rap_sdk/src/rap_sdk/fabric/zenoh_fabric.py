@@ -1,0 +1,367 @@
+"""ZenohFabric: the fabric over one Zenoh session.
+
+One session per process (peer mode by default, multicast scouting off, explicit
+``listen``/``connect`` endpoints). Samples published here reach this process's
+subscribers through the in-process router and never the network; Zenoh carries them to
+other sessions only (publishers declared with ``allowed_destination=REMOTE``,
+subscribers with ``allowed_origin=REMOTE``), so each subscriber gets each sample once.
+
+Zenoh callbacks run on Zenoh threads: they copy the payload and hand it to the loop
+through :class:`~rap_sdk.fabric.handoff.LoopHandoff`; they never block and never call
+Zenoh. Replies to queries are sent from the loop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+from types import TracebackType
+from typing import Any, Literal
+
+import anyio
+import msgspec
+import zenoh
+
+from ..errors import FabricError, LifecycleError, QueryError
+from ..inbox import InboxPolicy
+from ..keyexpr import validate
+from ._local import (
+    DEFAULT_POLICY,
+    InboxStream,
+    Lifecycle,
+    LocalSubscription,
+    Router,
+    answer,
+    liveliness_stream,
+)
+from ._types import LivelinessChange, QueryHandler, QueryRequest, Reply, Sample
+from .handoff import LoopHandoff
+
+__all__ = ["ZenohConfig", "ZenohFabric"]
+
+log = logging.getLogger(__name__)
+
+
+class ZenohConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    mode: Literal["peer", "client", "router"] = "peer"
+    listen: list[str] = msgspec.field(default_factory=lambda: ["tcp/127.0.0.1:0"])
+    """Endpoints to listen on. The default listens on loopback only, on a free port."""
+    connect: list[str] = []
+    multicast_scouting: bool = False
+    congestion_control: Literal["block", "drop"] = "block"
+    """``block``: a full network queue makes ``publish`` wait (nothing is lost);
+    ``drop``: the sample is dropped (for high-rate sensor data)."""
+    direct_callbacks: bool = True
+    """Run transport callbacks on Zenoh's own thread (they only copy and hand off);
+    ``False`` adds Zenoh's extra Python thread hop (measured in bench/fabric)."""
+    query_handler_timeout: float = 5.0
+    extra: dict[str, Any] = {}
+    """Further Zenoh configuration, merged at top level (e.g. ``transport``)."""
+
+    def to_json5(self) -> str:
+        conf: dict[str, Any] = {
+            "mode": self.mode,
+            "listen": {"endpoints": list(self.listen)},
+            "connect": {"endpoints": list(self.connect)},
+            "scouting": {"multicast": {"enabled": self.multicast_scouting}},
+        }
+        conf.update(self.extra)
+        return json.dumps(conf)
+
+
+class _Handle:
+    """A token or queryable: undeclares its Zenoh entity once."""
+
+    def __init__(self, key: str, entity: Any, owner: set[_Handle]) -> None:
+        self.key = self.key_expr = key
+        self._entity = entity
+        self._owner = owner
+        owner.add(self)
+
+    def undeclare(self) -> None:
+        if self._entity is not None:
+            entity, self._entity = self._entity, None
+            self._owner.discard(self)
+            try:
+                entity.undeclare()
+            except zenoh.ZError as exc:
+                log.debug("undeclare of %r failed: %s", self.key, exc)
+
+
+class ZenohFabric:
+    def __init__(self, config: ZenohConfig | None = None) -> None:
+        self.config = config or ZenohConfig()
+        self._life = Lifecycle("ZenohFabric")
+        self._router = Router()
+        self._session: zenoh.Session | None = None
+        self._handoff: LoopHandoff | None = None
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._handles: set[_Handle] = set()
+        self._watches: list[InboxStream[LivelinessChange]] = []
+        self._stack: contextlib.AsyncExitStack | None = None
+        self._id = ""
+        cc = zenoh.CongestionControl
+        self._cc = cc.BLOCK if self.config.congestion_control == "block" else cc.DROP
+
+    # -- lifecycle ---------------------------------------------------------------------
+
+    @property
+    def id(self) -> str:
+        return self._id
+
+    @property
+    def session(self) -> zenoh.Session:
+        self._life.check_open()
+        assert self._session is not None
+        return self._session
+
+    async def __aenter__(self) -> ZenohFabric:
+        try:
+            zconf = zenoh.Config.from_json5(self.config.to_json5())
+        except zenoh.ZError as exc:
+            raise FabricError(f"invalid Zenoh configuration: {exc}") from None
+        try:
+            session = await anyio.to_thread.run_sync(zenoh.open, zconf)
+        except zenoh.ZError as exc:
+            raise FabricError(
+                f"cannot open a Zenoh session (listen={self.config.listen}, "
+                f"connect={self.config.connect}): {exc}"
+            ) from None
+        stack = contextlib.AsyncExitStack()
+        tg = await stack.enter_async_context(anyio.create_task_group())
+        self._session = session
+        self._id = str(session.info.zid())
+        self._handoff = LoopHandoff(asyncio.get_running_loop())
+        self._stack = stack
+        self._life.opening(tg)
+        return self
+
+    async def __aexit__(
+        self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        if not self._life.is_open:
+            return
+        for h in list(self._handles):
+            h.undeclare()
+        for sub in self._router.all():
+            sub.close()
+        for w in list(self._watches):
+            w.close()
+        for pub in self._publishers.values():
+            with contextlib.suppress(zenoh.ZError):
+                pub.undeclare()
+        self._publishers.clear()
+        self._life.task_group.cancel_scope.cancel()
+        self._life.closing()
+        assert self._stack is not None
+        try:
+            await self._stack.__aexit__(et, ev, tb)
+        finally:
+            session, self._session = self._session, None
+            if session is not None:
+                with anyio.CancelScope(shield=True):
+                    await anyio.to_thread.run_sync(session.close)
+
+    def _callback(self, fn: Any, drop: Any = None) -> zenoh.handlers.Callback[Any]:
+        return zenoh.handlers.Callback(fn, drop, indirect=not self.config.direct_callbacks)
+
+    # -- pub/sub -----------------------------------------------------------------------
+
+    async def publish(self, key: str, payload: bytes, *, timeout: float | None = None) -> None:
+        self._life.check_open()
+        for sub in self._router.matching(key):
+            await sub.inbox.put(Sample(key, payload), timeout=timeout)
+        pub = self._publishers.get(key)
+        if pub is None:
+            pub = self._declare_publisher(key)
+        pub.put(payload)
+
+    def _declare_publisher(self, key: str) -> zenoh.Publisher:
+        validate(key)
+        if "*" in key:
+            raise FabricError(
+                f"cannot publish on a wildcard expression {key!r}; use a "
+                "concrete key built by rap_schemas.keys"
+            )
+        if len(self._publishers) >= 1024:
+            _, old = self._publishers.popitem()
+            old.undeclare()
+        pub = self.session.declare_publisher(
+            key, congestion_control=self._cc, allowed_destination=zenoh.Locality.REMOTE
+        )
+        self._publishers[key] = pub
+        return pub
+
+    def subscribe(self, key_expr: str, policy: InboxPolicy | None = None) -> LocalSubscription:
+        self._life.check_open()
+        validate(key_expr)
+
+        def closed(s: InboxStream[Sample]) -> None:
+            assert isinstance(s, LocalSubscription)
+            self._router.remove(s)
+            if s.remote_handle is not None:
+                with contextlib.suppress(zenoh.ZError):
+                    s.remote_handle.undeclare()  # type: ignore[attr-defined]
+
+        sub = LocalSubscription(key_expr, policy or DEFAULT_POLICY, closed)
+        deliver = sub.inbox.offer
+        push = self._handoff.push  # type: ignore[union-attr]
+
+        def on_sample(s: zenoh.Sample) -> None:
+            push(deliver, Sample(str(s.key_expr), s.payload.to_bytes(), True))
+
+        sub.remote_handle = self.session.declare_subscriber(
+            key_expr, self._callback(on_sample), allowed_origin=zenoh.Locality.REMOTE
+        )
+        self._router.add(sub)
+        return sub
+
+    async def wait_matched(
+        self, key: str, *, queryable: bool = False, timeout: float = 5.0
+    ) -> None:
+        """Wait until another session has a subscriber (or, with ``queryable``, a
+        queryable) matching ``key``: the way to know a remote peer is ready, no sleep."""
+        self._life.check_open()
+        validate(key)
+        ready = anyio.Event()
+        push = self._handoff.push  # type: ignore[union-attr]
+        entity: Any
+        if queryable:
+            entity = self.session.declare_querier(key)
+        else:
+            entity = self._publishers.get(key) or self._declare_publisher(key)
+
+        def on_status(status: zenoh.MatchingStatus) -> None:
+            if status.matching:
+                push(lambda _: ready.set(), None)
+
+        listener = entity.declare_matching_listener(self._callback(on_status))
+        try:
+            if entity.matching_status.matching:
+                return
+            with anyio.fail_after(timeout):
+                await ready.wait()
+        except TimeoutError:
+            what = "queryable" if queryable else "subscriber"
+            raise FabricError(
+                f"no remote {what} matched {key!r} within {timeout} s; is "
+                "the peer running and connected (check listen/connect)?"
+            ) from None
+        finally:
+            listener.undeclare()
+            if queryable:
+                entity.undeclare()
+
+    # -- query/reply -------------------------------------------------------------------
+
+    def serve(self, key_expr: str, handler: QueryHandler) -> _Handle:
+        self._life.check_open()
+        validate(key_expr)
+        tg = self._life.task_group
+        push = self._handoff.push  # type: ignore[union-attr]
+        timeout = self.config.query_handler_timeout
+
+        async def run(query: zenoh.Query) -> None:
+            payload = query.payload.to_bytes() if query.payload is not None else b""
+            request = QueryRequest(str(query.key_expr), str(query.parameters), payload)
+            try:
+                for r in await answer(handler, request, timeout):
+                    if r.ok:
+                        query.reply(r.key, r.payload)
+                    else:
+                        query.reply_err(r.payload)
+            except zenoh.ZError as exc:
+                log.warning("reply to %r failed: %s", request.key, exc)
+            finally:
+                query.drop()
+
+        def start(query: zenoh.Query) -> None:
+            tg.start_soon(run, query)
+
+        def on_query(query: zenoh.Query) -> None:
+            push(start, query)
+
+        q = self.session.declare_queryable(key_expr, self._callback(on_query))
+        return _Handle(key_expr, q, self._handles)
+
+    async def query(
+        self,
+        selector: str,
+        payload: bytes = b"",
+        *,
+        timeout: float = 2.0,
+    ) -> list[Reply]:
+        self._life.check_open()
+        validate(selector.partition("?")[0])
+        loop = asyncio.get_running_loop()
+        done: asyncio.Future[None] = loop.create_future()
+        replies: list[Reply] = []
+        push = self._handoff.push  # type: ignore[union-attr]
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is not None:
+                replies.append(Reply(str(reply.ok.key_expr), reply.ok.payload.to_bytes()))
+            elif reply.err is not None:
+                replies.append(Reply(selector, reply.err.payload.to_bytes(), ok=False))
+
+        def finish(_: object) -> None:
+            if not done.done():
+                done.set_result(None)
+
+        def on_drop() -> None:
+            push(finish, None)
+
+        self.session.get(
+            selector, self._callback(on_reply, on_drop), payload=payload or None, timeout=timeout
+        )
+        try:
+            with anyio.fail_after(timeout + 1.0):
+                await done
+        except TimeoutError:
+            raise QueryError(f"query {selector!r} was not finalised within {timeout} s") from None
+        return list(replies)
+
+    # -- liveliness --------------------------------------------------------------------
+
+    def declare_token(self, key: str) -> _Handle:
+        self._life.check_open()
+        validate(key)
+        if "*" in key:
+            raise LifecycleError(f"a liveliness token needs a concrete key, got {key!r}")
+        tok = self.session.liveliness().declare_token(key)
+        return _Handle(key, tok, self._handles)
+
+    def watch_liveliness(
+        self,
+        key_expr: str,
+        *,
+        capacity: int = 256,
+    ) -> InboxStream[LivelinessChange]:
+        self._life.check_open()
+        validate(key_expr)
+        handle: list[Any] = []
+
+        def closed(s: InboxStream[LivelinessChange]) -> None:
+            if s in self._watches:
+                self._watches.remove(s)
+            for h in handle:
+                with contextlib.suppress(zenoh.ZError):
+                    h.undeclare()
+
+        stream = liveliness_stream(capacity, closed)
+        deliver = stream.inbox.offer
+        push = self._handoff.push  # type: ignore[union-attr]
+        put_kind = zenoh.SampleKind.PUT
+
+        def on_change(s: zenoh.Sample) -> None:
+            push(deliver, LivelinessChange(str(s.key_expr), s.kind == put_kind))
+
+        handle.append(
+            self.session.liveliness().declare_subscriber(
+                key_expr, self._callback(on_change), history=True
+            )
+        )
+        self._watches.append(stream)
+        return stream

@@ -1,0 +1,157 @@
+"""Bounded inboxes with an explicit overflow policy.
+
+``latest``: when full, the oldest item is dropped for the new one (sensor data: the
+newest reading is what matters). ``fifo``: when full, a local publisher waits for room
+(``block=True``, backpressure) or the new item is dropped (``block=False``). Items that
+arrive from another process on a transport thread never wait: into a full FIFO inbox they
+are dropped and counted (a transport thread must never block), so size FIFO inboxes for
+the bursts you expect from remote senders.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import enum
+from collections import deque
+from typing import Generic, TypeVar
+
+import msgspec
+
+from .errors import BackpressureTimeout, LifecycleError
+
+__all__ = ["Inbox", "InboxPolicy", "InboxStats", "Overflow"]
+
+T = TypeVar("T")
+
+
+class Overflow(enum.StrEnum):
+    LATEST = "latest"
+    FIFO = "fifo"
+
+
+class InboxPolicy(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    capacity: int = 64
+    overflow: Overflow = Overflow.FIFO
+    block: bool = True
+    """FIFO only: local publishers wait for room instead of dropping."""
+
+    def __post_init__(self) -> None:
+        if self.capacity < 1:
+            raise ValueError(f"inbox capacity must be >= 1, got {self.capacity}")
+
+
+class InboxStats(msgspec.Struct):
+    accepted: int = 0
+    dropped: int = 0
+    high_water: int = 0
+
+
+class Inbox(Generic[T]):
+    """A single-consumer bounded queue living on one event loop."""
+
+    __slots__ = ("_closed", "_getter", "_items", "_putters", "policy", "stats")
+
+    def __init__(self, policy: InboxPolicy) -> None:
+        self.policy = policy
+        self.stats = InboxStats()
+        self._items: deque[T] = deque()
+        self._getter: asyncio.Future[None] | None = None
+        self._putters: deque[asyncio.Future[None]] = deque()
+        self._closed = False
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def offer(self, item: T) -> bool:
+        """Add without waiting. Returns False when the item was dropped."""
+        if self._closed:
+            return False
+        items = self._items
+        if len(items) >= self.policy.capacity:
+            self.stats.dropped += 1
+            if self.policy.overflow is Overflow.FIFO:
+                return False
+            items.popleft()
+        items.append(item)
+        self._accepted(len(items))
+        return True
+
+    async def put(self, item: T, *, timeout: float | None = None) -> bool:
+        """Add, waiting for room when the policy is FIFO with ``block``.
+
+        Raises :class:`BackpressureTimeout` when room does not come within ``timeout``.
+        """
+        policy = self.policy
+        if not (policy.overflow is Overflow.FIFO and policy.block):
+            return self.offer(item)
+        while len(self._items) >= policy.capacity and not self._closed:
+            fut = asyncio.get_running_loop().create_future()
+            self._putters.append(fut)
+            try:
+                await asyncio.wait_for(fut, timeout)
+            except TimeoutError:
+                raise BackpressureTimeout(
+                    f"inbox full ({policy.capacity} items) for {timeout} s; the consumer "
+                    "is too slow: raise its capacity or speed up its handler"
+                ) from None
+            finally:
+                if fut in self._putters:
+                    self._putters.remove(fut)
+        if self._closed:
+            return False
+        self._items.append(item)
+        self._accepted(len(self._items))
+        return True
+
+    def _accepted(self, n: int) -> None:
+        st = self.stats
+        st.accepted += 1
+        if n > st.high_water:
+            st.high_water = n
+        g = self._getter
+        if g is not None and not g.done():
+            g.set_result(None)
+
+    def get_nowait(self) -> T | None:
+        if not self._items:
+            return None
+        item = self._items.popleft()
+        self._wake_putter()
+        return item
+
+    async def get(self) -> T:
+        """The next item; raises :class:`LifecycleError` once closed and drained."""
+        while not self._items:
+            if self._closed:
+                raise LifecycleError("inbox closed")
+            if self._getter is not None and not self._getter.done():
+                raise LifecycleError("inbox has one consumer; a second get() is a bug")
+            self._getter = asyncio.get_running_loop().create_future()
+            try:
+                await self._getter
+            finally:
+                self._getter = None
+        item = self._items.popleft()
+        self._wake_putter()
+        return item
+
+    def _wake_putter(self) -> None:
+        while self._putters:
+            fut = self._putters.popleft()
+            if not fut.done():
+                fut.set_result(None)
+                return
+
+    def close(self) -> None:
+        """Stop accepting; the consumer drains what is queued, then ``get`` raises."""
+        self._closed = True
+        if self._getter is not None and not self._getter.done():
+            self._getter.set_result(None)
+        while self._putters:
+            fut = self._putters.popleft()
+            if not fut.done():
+                fut.set_result(None)

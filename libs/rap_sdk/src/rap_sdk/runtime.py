@@ -1,0 +1,354 @@
+"""Running nodes on a fabric: inboxes, typed dispatch, tracing, rejections, shutdown.
+
+Each route of a node gets its own subscription with its own bounded inbox and a consumer
+task; a node's handlers run one at a time (a node's state needs no locks). Around every
+handler call the runtime publishes :class:`~rap_schemas.StageTrace` start/end records
+carrying the ``cycle``. A sample that cannot be accepted is counted, logged (rate
+limited) and published as a :class:`~rap_schemas.Rejection` on ``rap/<system>/log/<node>``;
+it never stops the node.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+from collections.abc import AsyncIterator, Sequence
+from contextlib import asynccontextmanager
+from typing import Any
+
+import anyio
+import msgspec
+from anyio.abc import TaskStatus
+from rap_schemas import Envelope, Message, Rejection, StageTrace, keys, type_name
+
+from .envelope import Clock, Opener, Sealer, SenderStats, SystemClock
+from .errors import LifecycleError, RejectedSample
+from .fabric import Fabric, Sample, Subscription
+from .node import Node, Route
+
+__all__ = ["Context", "NodeGroup", "NodeRuntime", "NodeStats", "run_nodes"]
+
+log = logging.getLogger(__name__)
+
+_encode = msgspec.msgpack.Encoder().encode
+_NIL = _encode(None)
+REJECTION_INTERVAL_NS = 1_000_000_000
+
+
+class NodeStats(msgspec.Struct):
+    received: int = 0
+    handled: int = 0
+    failed: int = 0
+    rejected: int = 0
+    sent: int = 0
+
+
+class Context:
+    """What a handler gets: the triggering envelope and ways to act in its cycle."""
+
+    __slots__ = ("_rt", "cycle", "envelope", "key", "message")
+
+    def __init__(self, rt: NodeRuntime, key: str, envelope: Envelope, message: Any) -> None:
+        self._rt = rt
+        self.key = key
+        self.envelope = envelope
+        self.message = message
+        self.cycle: bytes = envelope.cycle or envelope.uid
+
+    @property
+    def node(self) -> Node:
+        return self._rt.node
+
+    @property
+    def system(self) -> str:
+        return self._rt.system
+
+    @property
+    def config(self) -> Any:
+        return self._rt.node.config
+
+    async def emit(self, name: str, message: Message | None = None) -> Envelope:
+        """Emit event ``name`` in this cycle, caused by the triggering envelope."""
+        return await self._rt.send(
+            keys.event(self._rt.system, name), message, cycle=self.cycle, cause=self.envelope.uid
+        )
+
+    async def publish(self, topic: str, message: Message) -> Envelope:
+        """Publish on data topic ``topic`` in this cycle."""
+        return await self._rt.send(
+            keys.data(self._rt.system, topic), message, cycle=self.cycle, cause=self.envelope.uid
+        )
+
+
+class _RateLimited:
+    """Per-key rejection records: the first at once, then one per interval with a count."""
+
+    __slots__ = ("last", "pending")
+
+    def __init__(self) -> None:
+        self.last = -REJECTION_INTERVAL_NS
+        self.pending = 0
+
+
+class NodeRuntime:
+    """One node running on one fabric."""
+
+    def __init__(
+        self,
+        node: Node,
+        fabric: Fabric,
+        *,
+        system: str,
+        clock: Clock | None = None,
+        trace: bool = True,
+    ) -> None:
+        keys.system_pattern(system)  # validates the system name
+        self.node = node
+        self.fabric = fabric
+        self.system = system
+        self.trace = trace
+        self.clock: Clock = clock or SystemClock()
+        self.sealer = Sealer(node.name, self.clock)
+        self.opener = Opener()
+        self.stats = NodeStats()
+        self._lock = anyio.Lock()
+        self._subs: list[Subscription] = []
+        self._rejections: dict[str, _RateLimited] = {}
+        self._trace_key = keys.trace(system, node.name)
+        self._log_key = keys.log(system, node.name)
+        self._stage = node.stage.value if node.stage else "none"
+        self._state = "new"
+
+    @property
+    def sender_stats(self) -> SenderStats:
+        return self.opener.stats
+
+    def route_key(self, route: Route) -> str:
+        build = keys.data if route.kind == "data" else keys.event
+        return build(self.system, route.name)
+
+    # -- sending -----------------------------------------------------------------------
+
+    async def send(
+        self,
+        key: str,
+        message: Message | None,
+        *,
+        cycle: bytes | None = None,
+        cause: bytes | None = None,
+        ctx: dict[str, int] | None = None,
+    ) -> Envelope:
+        """Seal and publish ``message`` on ``key`` (a full key from rap_schemas.keys)."""
+        body = _NIL if message is None else _encode(message)
+        tname = "rap.Empty/1" if message is None else type_name(type(message))
+        payload, env = self.sealer.seal(key, tname, body, cycle=cycle, cause=cause, ctx=ctx)
+        await self.fabric.publish(key, payload)
+        self.stats.sent += 1
+        return env
+
+    async def _trace(
+        self,
+        route: Route,
+        phase: str,
+        key: str,
+        env: Envelope,
+        cycle: bytes,
+        ts: int,
+        duration: int = 0,
+        error: str = "",
+    ) -> None:
+        rec = StageTrace(
+            node=self.node.name,
+            stage=self._stage,  # type: ignore[arg-type]
+            handler=route.handler_name,
+            phase=phase,  # type: ignore[arg-type]
+            trigger=env.uid,
+            trigger_key=key,
+            cycle=cycle,
+            ts=ts,
+            duration_ns=duration,
+            ok=not error,
+            error=error,
+        )
+        payload, _ = self.sealer.seal(
+            self._trace_key, StageTrace.TYPE, _encode(rec), cycle=cycle, cause=env.uid
+        )
+        await self.fabric.publish(self._trace_key, payload)
+
+    # -- receiving ---------------------------------------------------------------------
+
+    async def _reject(self, key: str, reason: str, env: Envelope | None = None) -> None:
+        self.stats.rejected += 1
+        rl = self._rejections.get(key)
+        if rl is None:
+            rl = self._rejections[key] = _RateLimited()
+        now = self.clock.time_ns()
+        rl.pending += 1
+        if now - rl.last < REJECTION_INTERVAL_NS:
+            return
+        count, rl.pending, rl.last = rl.pending, 0, now
+        log.warning("node %s rejected %d sample(s) on %s: %s", self.node.name, count, key, reason)
+        rec = Rejection(
+            node=self.node.name,
+            key=key,
+            reason=reason,
+            ts=now,
+            count=count,
+            source=env.source if env else "",
+            type=env.type if env else "",
+        )
+        payload, _ = self.sealer.seal(self._log_key, Rejection.TYPE, _encode(rec))
+        try:
+            await self.fabric.publish(self._log_key, payload)
+        except LifecycleError:
+            pass  # fabric closing: the counter and the log line stand
+
+    async def _flush_rejections(self) -> None:
+        for key, rl in self._rejections.items():
+            if rl.pending:
+                rl.last = -REJECTION_INTERVAL_NS
+                rl.pending -= 1
+                await self._reject(key, "further samples rejected (see earlier reason)")
+                self.stats.rejected -= 1
+
+    async def handle(self, route: Route, sample: Sample) -> None:
+        """Open, check, decode and dispatch one sample to ``route``'s handler."""
+        self.stats.received += 1
+        try:
+            env = self.opener.open(sample.key, sample.payload)
+        except RejectedSample as exc:
+            await self._reject(sample.key, exc.reason)
+            return
+        if env is None:
+            return  # duplicate, counted by the opener
+        message: Any = None
+        if route.decode is not None:
+            assert route.msg_type is not None
+            if env.type != route.msg_type.TYPE:
+                await self._reject(
+                    sample.key, f"expected type {route.msg_type.TYPE}, got {env.type!r}", env
+                )
+                return
+            try:
+                message = route.decode(env.body)
+            except (msgspec.ValidationError, msgspec.DecodeError) as exc:
+                await self._reject(sample.key, f"invalid {env.type} body: {exc}", env)
+                return
+        ctx = Context(self, sample.key, env, message)
+        async with self._lock:
+            await self._call(route, ctx)
+
+    async def _call(self, route: Route, ctx: Context) -> None:
+        clock, env, cycle = self.clock, ctx.envelope, ctx.cycle
+        start = clock.time_ns()
+        if self.trace:
+            await self._trace(route, "start", ctx.key, env, cycle, start)
+        error = ""
+        try:
+            if route.msg_type is None:
+                await route.fn(ctx)
+            else:
+                await route.fn(ctx, ctx.message)
+        except Exception as exc:  # a handler bug must not stop the node
+            error = f"{type(exc).__name__}: {exc}"
+            self.stats.failed += 1
+            log.exception(
+                "node %s: handler %s failed on %s", self.node.name, route.handler_name, ctx.key
+            )
+        else:
+            self.stats.handled += 1
+        if self.trace:
+            end = clock.time_ns()
+            await self._trace(route, "end", ctx.key, env, cycle, end, end - start, error)
+
+    # -- lifecycle ---------------------------------------------------------------------
+
+    async def run(self, *, task_status: TaskStatus[None] = anyio.TASK_STATUS_IGNORED) -> None:
+        """Declare the node's subscriptions and liveliness token, report ready, and
+        consume until :meth:`stop`; what was queued before ``stop`` is still handled."""
+        if self._state != "new":
+            raise LifecycleError(
+                f"node {self.node.name!r} runtime is {self._state}; a runtime runs once"
+            )
+        self._state = "running"
+        token = self.fabric.declare_token(keys.alive(self.system, self.node.name))
+        try:
+            async with anyio.create_task_group() as tg:
+                for route in self.node.routes:
+                    sub = self.fabric.subscribe(self.route_key(route), route.policy)
+                    self._subs.append(sub)
+                    tg.start_soon(self._consume, route, sub)
+                task_status.started()
+        finally:
+            with anyio.CancelScope(shield=True):
+                await self._flush_rejections()
+            token.undeclare()
+            for sub in self._subs:
+                sub.close()
+            self._state = "stopped"
+
+    async def _consume(self, route: Route, sub: Subscription) -> None:
+        async for sample in sub:
+            await self.handle(route, sample)
+
+    def stop(self) -> None:
+        """Stop taking new samples; queued ones are still handled, then ``run`` returns."""
+        for sub in self._subs:
+            sub.close()
+
+
+class NodeGroup:
+    """Several node runtimes sharing one task group."""
+
+    def __init__(self, runtimes: Sequence[NodeRuntime]) -> None:
+        self.runtimes = list(runtimes)
+
+    def __getitem__(self, name: str) -> NodeRuntime:
+        for rt in self.runtimes:
+            if rt.node.name == name:
+                return rt
+        raise KeyError(f"no node {name!r}; running: {[r.node.name for r in self.runtimes]}")
+
+    def stop(self) -> None:
+        for rt in self.runtimes:
+            rt.stop()
+
+
+@asynccontextmanager
+async def run_nodes(
+    fabric: Fabric,
+    nodes: Sequence[Node],
+    *,
+    system: str,
+    clock: Clock | None = None,
+    trace: bool = True,
+    grace: float = 5.0,
+) -> AsyncIterator[NodeGroup]:
+    """Run ``nodes`` on ``fabric`` until the block exits; every node is subscribed when
+    the block starts. On exit, nodes stop taking input, handle what is queued (within
+    ``grace`` s), then are cancelled."""
+    names = [n.name for n in nodes]
+    if len(set(names)) != len(names):
+        raise LifecycleError(f"node names must be unique within a group: {names}")
+    group = NodeGroup(
+        [NodeRuntime(n, fabric, system=system, clock=clock, trace=trace) for n in nodes]
+    )
+    async with anyio.create_task_group() as tg:
+        for rt in group.runtimes:
+            await tg.start(rt.run)
+        try:
+            yield group
+        finally:
+            group.stop()
+            tg.cancel_scope.deadline = anyio.current_time() + grace
+
+
+async def serve(nodes: Sequence[Node], fabric: Fabric, *, system: str, grace: float = 5.0) -> None:
+    """Run ``nodes`` until SIGTERM or SIGINT, then stop gracefully."""
+    with anyio.open_signal_receiver(signal.SIGTERM, signal.SIGINT) as signals:
+        async with run_nodes(fabric, nodes, system=system, grace=grace):
+            async for signum in signals:
+                log.info(
+                    "received %s; stopping %d node(s)", signal.Signals(signum).name, len(nodes)
+                )
+                break

@@ -1,0 +1,297 @@
+"""One behaviour suite for every Fabric: MemoryFabric and ZenohFabric (real sessions on
+loopback). ``pair`` gives two fabrics that see each other as separate processes would;
+tests that need one fabric use ``a`` only."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from collections.abc import AsyncIterator
+from contextlib import AsyncExitStack
+from typing import Any
+
+import anyio
+import pytest
+from anyio import wait_all_tasks_blocked
+from rap_sdk import (
+    BackpressureTimeout,
+    InboxPolicy,
+    LifecycleError,
+    LivelinessChange,
+    MemoryBus,
+    MemoryFabric,
+    Overflow,
+    QueryRequest,
+    Reply,
+    ZenohConfig,
+    ZenohFabric,
+)
+from rap_sdk.fabric import Fabric
+from rap_sdk.testing import free_port
+
+pytestmark = pytest.mark.anyio
+
+KINDS = ["memory", pytest.param("zenoh", marks=pytest.mark.zenoh)]
+
+
+async def open_pair(kind: str, stack: AsyncExitStack) -> tuple[Any, Any]:
+    if kind == "memory":
+        bus = MemoryBus()
+        a = await stack.enter_async_context(MemoryFabric(bus=bus))
+        b = await stack.enter_async_context(MemoryFabric(bus=bus))
+        return a, b
+    port = free_port()
+    a = await stack.enter_async_context(ZenohFabric(ZenohConfig(listen=[f"tcp/127.0.0.1:{port}"])))
+    b = await stack.enter_async_context(
+        ZenohFabric(ZenohConfig(listen=[], connect=[f"tcp/127.0.0.1:{port}"]))
+    )
+    return a, b
+
+
+@pytest.fixture(params=KINDS)
+async def pair(request: pytest.FixtureRequest) -> AsyncIterator[tuple[Any, Any]]:
+    async with AsyncExitStack() as stack:
+        yield await open_pair(request.param, stack)
+
+
+async def get(sub: Any, timeout: float = 5.0) -> Any:
+    with anyio.fail_after(timeout):
+        return await sub.get()
+
+
+async def test_both_implement_the_protocol(pair: tuple[Any, Any]) -> None:
+    a, b = pair
+    assert isinstance(a, Fabric)
+    assert isinstance(b, Fabric)
+    assert a.id
+    assert a.id != b.id
+
+
+async def test_local_delivery_is_not_remote(pair: tuple[Any, Any]) -> None:
+    a, _ = pair
+    sub = a.subscribe("rap/s/data/scan")
+    await a.publish("rap/s/data/scan", b"x")
+    s = await get(sub)
+    assert (s.key, s.payload, s.remote) == ("rap/s/data/scan", b"x", False)
+
+
+async def test_each_subscriber_gets_each_sample_once(pair: tuple[Any, Any]) -> None:
+    a, b = pair
+    local, remote = a.subscribe("rap/s/data/**"), b.subscribe("rap/s/data/**")
+    await a.wait_matched("rap/s/data/n")
+    for i in range(5):
+        await a.publish("rap/s/data/n", bytes([i]))
+    await a.publish("rap/s/data/end", b"")
+    for sub, is_remote in ((local, False), (remote, True)):
+        got = [await get(sub) for _ in range(6)]
+        assert [s.payload for s in got] == [bytes([i]) for i in range(5)] + [b""]
+        assert all(s.remote is is_remote for s in got)
+    # nothing more was delivered: a duplicate would be queued behind 'end'
+    assert len(local.inbox) == 0
+    await a.publish("rap/s/data/probe", b"p")
+    assert (await get(remote)).key == "rap/s/data/probe"
+
+
+@pytest.mark.parametrize(
+    ("expr", "hits"),
+    [
+        ("rap/s/data/*", ["rap/s/data/scan"]),
+        ("rap/s/data/**", ["rap/s/data/scan", "rap/s/data/tb1/scan"]),
+        ("rap/*/data/tb1/*", ["rap/s/data/tb1/scan"]),
+        ("rap/**/scan", ["rap/s/data/scan", "rap/s/data/tb1/scan"]),
+        ("rap/s/event/**", ["rap/s/event/new-data"]),
+    ],
+)
+async def test_wildcards(pair: tuple[Any, Any], expr: str, hits: list[str]) -> None:
+    a, b = pair
+    keys = ["rap/s/data/scan", "rap/s/data/tb1/scan", "rap/s/event/new-data", "rap/t/x/y"]
+    sub_local, sub_remote = a.subscribe(expr), b.subscribe(expr)
+    sentinel = b.subscribe("rap/s/end")
+    await a.wait_matched("rap/s/end")
+    for k in keys:
+        await a.wait_matched(k) if k in hits else None
+        await a.publish(k, k.encode())
+    await a.publish("rap/s/end", b"")
+    await get(sentinel)
+    for sub in (sub_local, sub_remote):
+        got = [(await get(sub)).key for _ in hits]
+        assert sorted(got) == sorted(hits)
+        assert len(sub.inbox) == 0
+
+
+async def test_query_reply_local_remote_and_errors(pair: tuple[Any, Any]) -> None:
+    a, b = pair
+
+    async def value(req: QueryRequest) -> list[Reply]:
+        if req.payload == b"boom":
+            raise RuntimeError("handler exploded")
+        return [Reply("rap/s/kb/x", b"x=" + req.payload)]
+
+    async def listing(req: QueryRequest) -> list[Reply]:
+        return [Reply("rap/s/kb/list/a", b"1"), Reply("rap/s/kb/list/b", b"2")]
+
+    a.serve("rap/s/kb/x", value)
+    a.serve("rap/s/kb/list/*", listing)
+    await b.wait_matched("rap/s/kb/x", queryable=True)
+    for asker in (a, b):
+        assert await asker.query("rap/s/kb/x", b"1") == [Reply("rap/s/kb/x", b"x=1")]
+        err = await asker.query("rap/s/kb/x", b"boom")
+        assert [r.ok for r in err] == [False]
+        assert b"handler exploded" in err[0].payload
+        many = await asker.query("rap/s/kb/list/**")
+        assert sorted(r.payload for r in many) == [b"1", b"2"]
+        assert await asker.query("rap/s/kb/nobody", timeout=1.0) == []
+
+
+async def test_liveliness_appears_and_disappears(pair: tuple[Any, Any]) -> None:
+    a, b = pair
+    early = a.declare_token("rap/s/alive/early")
+    watch = b.watch_liveliness("rap/s/alive/*")
+    assert await get(watch) == LivelinessChange("rap/s/alive/early", True)
+    late = a.declare_token("rap/s/alive/late")
+    assert await get(watch) == LivelinessChange("rap/s/alive/late", True)
+    late.undeclare()
+    assert await get(watch) == LivelinessChange("rap/s/alive/late", False)
+    early.undeclare()
+    assert await get(watch) == LivelinessChange("rap/s/alive/early", False)
+    own = b.declare_token("rap/s/alive/own")
+    assert await get(watch) == LivelinessChange("rap/s/alive/own", True)
+    own.undeclare()
+    assert await get(watch) == LivelinessChange("rap/s/alive/own", False)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+async def test_liveliness_ends_when_a_fabric_closes(kind: str) -> None:
+    port = free_port()
+    if kind == "memory":
+        bus = MemoryBus()
+        watcher: Any = MemoryFabric(bus=bus)
+        leaver: Any = MemoryFabric(bus=bus)
+    else:
+        watcher = ZenohFabric(ZenohConfig(listen=[f"tcp/127.0.0.1:{port}"]))
+        leaver = ZenohFabric(ZenohConfig(listen=[], connect=[f"tcp/127.0.0.1:{port}"]))
+    async with watcher:
+        watch = watcher.watch_liveliness("rap/s/alive/**")
+        async with leaver:
+            leaver.declare_token("rap/s/alive/n")
+            assert await get(watch) == LivelinessChange("rap/s/alive/n", True)
+        assert await get(watch) == LivelinessChange("rap/s/alive/n", False)
+
+
+async def test_per_sender_order_is_kept(pair: tuple[Any, Any]) -> None:
+    a, b = pair
+    n = 2000
+    sub = b.subscribe("rap/s/event/e", InboxPolicy(capacity=n + 1, overflow=Overflow.FIFO))
+    await a.wait_matched("rap/s/event/e")
+    for i in range(n):
+        await a.publish("rap/s/event/e", i.to_bytes(4, "big"))
+    got = [int.from_bytes((await get(sub)).payload, "big") for _ in range(n)]
+    assert got == list(range(n))
+
+
+async def test_latest_keeps_the_newest_locally(pair: tuple[Any, Any]) -> None:
+    a, _ = pair
+    sub = a.subscribe("rap/s/data/scan", InboxPolicy(capacity=3, overflow=Overflow.LATEST))
+    for i in range(10):
+        await a.publish("rap/s/data/scan", bytes([i]))
+    assert [(await get(sub)).payload for _ in range(3)] == [b"\x07", b"\x08", b"\x09"]
+    assert sub.stats.dropped == 7
+
+
+async def test_latest_keeps_the_newest_from_remote(pair: tuple[Any, Any]) -> None:
+    a, b = pair
+    capped = b.subscribe("rap/s/data/scan", InboxPolicy(capacity=3, overflow=Overflow.LATEST))
+    observer = b.subscribe("rap/s/data/scan", InboxPolicy(capacity=100))
+    await a.wait_matched("rap/s/data/scan")
+    for i in range(11):
+        await a.publish("rap/s/data/scan", bytes([i]))
+    # the observer holding sample 10 means sample 9 reached the capped inbox before it
+    assert [(await get(observer)).payload[0] for _ in range(11)] == list(range(11))
+    got = [(await get(capped)).payload[0]]
+    while got[-1] != 10:
+        got.append((await get(capped)).payload[0])
+    assert got in ([7, 8, 9, 10], [8, 9, 10])
+    assert capped.stats.dropped == 11 - len(got)
+
+
+async def test_fifo_block_applies_backpressure_to_local_publishers(pair: tuple[Any, Any]) -> None:
+    a, _ = pair
+    sub = a.subscribe("rap/s/event/e", InboxPolicy(capacity=2, overflow=Overflow.FIFO))
+    await a.publish("rap/s/event/e", b"1")
+    await a.publish("rap/s/event/e", b"2")
+    done = anyio.Event()
+
+    async def third() -> None:
+        await a.publish("rap/s/event/e", b"3")
+        done.set()
+
+    async with anyio.create_task_group() as tg:
+        tg.start_soon(third)
+        await wait_all_tasks_blocked()
+        assert not done.is_set(), "publish into a full FIFO inbox must wait"
+        assert (await get(sub)).payload == b"1"
+        with anyio.fail_after(5):
+            await done.wait()
+    assert [(await get(sub)).payload for _ in range(2)] == [b"2", b"3"]
+    assert sub.stats.dropped == 0
+    await a.publish("rap/s/event/e", b"4")
+    await a.publish("rap/s/event/e", b"5")
+    with pytest.raises(BackpressureTimeout, match="inbox full"):
+        await a.publish("rap/s/event/e", b"6", timeout=0.01)
+
+
+async def test_fifo_drop_counts_what_it_drops(pair: tuple[Any, Any]) -> None:
+    a, b = pair
+    local = a.subscribe("rap/s/event/e", InboxPolicy(capacity=2, block=False))
+    remote = b.subscribe("rap/s/event/e", InboxPolicy(capacity=2, block=True))
+    observer = b.subscribe("rap/s/event/e", InboxPolicy(capacity=100))
+    await a.wait_matched("rap/s/event/e")
+    for i in range(5):
+        await a.publish("rap/s/event/e", bytes([i]))
+    assert [(await get(observer)).payload[0] for _ in range(5)] == list(range(5))
+    assert [(await get(local)).payload[0] for _ in range(2)] == [0, 1]
+    assert local.stats.dropped == 3
+    # a remote sender never waits: into a full FIFO inbox the sample is dropped, counted
+    assert (await get(remote)).payload[0] == 0
+    assert remote.stats.dropped + remote.stats.accepted == 5
+
+
+@pytest.mark.parametrize("kind", KINDS)
+async def test_misuse_is_refused_with_the_fix(kind: str) -> None:
+    fabric: Any = MemoryFabric() if kind == "memory" else ZenohFabric()
+    with pytest.raises(LifecycleError, match="not open: use 'async with"):
+        await fabric.publish("rap/s/data/x", b"")
+    async with fabric:
+        with pytest.raises(ValueError, match="wildcards must be whole chunks"):
+            fabric.subscribe("rap/s/da*ta")
+        with pytest.raises(ValueError, match="empty chunk"):
+            fabric.subscribe("rap//s")
+    with pytest.raises(LifecycleError, match="is closed"):
+        await fabric.publish("rap/s/data/x", b"")
+
+
+@pytest.mark.parametrize("kind", KINDS)
+async def test_clean_shutdown_leaks_no_task_or_thread(kind: str) -> None:
+    async def cycle() -> None:
+        async with AsyncExitStack() as stack:
+            a, b = await open_pair(kind, stack)
+            sub = b.subscribe("rap/s/**")
+            a.serve("rap/s/kb/x", lambda req: _reply())
+            a.declare_token("rap/s/alive/x")
+            b.watch_liveliness("rap/s/alive/*")
+            await a.wait_matched("rap/s/data/x")
+            await a.publish("rap/s/data/x", b"1")
+            await get(sub)
+            await b.query("rap/s/kb/x")
+
+    before = set(asyncio.all_tasks())
+    await cycle()  # the first session starts Zenoh's process-wide runtime threads
+    threads_after_first = threading.active_count()
+    await cycle()
+    await cycle()
+    assert set(asyncio.all_tasks()) == before
+    assert threading.active_count() <= threads_after_first
+
+
+async def _reply() -> list[Reply]:
+    return [Reply("rap/s/kb/x", b"ok")]

@@ -1,0 +1,21 @@
+"""``python -m rap_schemas export DIR``: write the JSON Schema export."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from .export import write
+
+
+def main(argv: list[str]) -> int:
+    if len(argv) != 2 or argv[0] != "export":
+        print("usage: python -m rap_schemas export DIR", file=sys.stderr)
+        return 2
+    paths = write(Path(argv[1]))
+    print(f"wrote {len(paths)} schemas to {argv[1]}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(sys.argv[1:]))

@@ -1,0 +1,48 @@
+"""Every wire message type, for schema export and type look-up by wire name."""
+
+from __future__ import annotations
+
+from typing import Final
+
+from .lidar import (
+    Empty,
+    LaserScan,
+    LidarMask,
+    Odometry,
+    PlanProposal,
+    Pose2D,
+    SpinCommand,
+    SpinPlan,
+    Twist,
+    Verdict,
+)
+from .maplek import KnowledgeAccess, Rejection, StageTrace
+from .message import Message
+
+__all__ = ["MESSAGES", "by_type"]
+
+MESSAGES: Final[tuple[type[Message], ...]] = (
+    Empty,
+    KnowledgeAccess,
+    LaserScan,
+    LidarMask,
+    Odometry,
+    PlanProposal,
+    Pose2D,
+    Rejection,
+    SpinCommand,
+    SpinPlan,
+    StageTrace,
+    Twist,
+    Verdict,
+)
+
+_BY_TYPE: Final = {m.TYPE: m for m in MESSAGES}
+
+
+def by_type(name: str) -> type[Message]:
+    """The message class for a wire name; ``KeyError`` naming the known ones otherwise."""
+    try:
+        return _BY_TYPE[name]
+    except KeyError:
+        raise KeyError(f"unknown message type {name!r}; known: {sorted(_BY_TYPE)}") from None

@@ -1,0 +1,48 @@
+"""JSON Schema export of every wire message and the envelope (``make schemas``)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import msgspec
+
+from .catalog import MESSAGES
+from .envelope import Envelope
+
+__all__ = ["render", "write"]
+
+
+def _file_name(type_name: str) -> str:
+    # "rap.LaserScan/1" -> "rap.LaserScan.v1.schema.json"
+    name, version = type_name.split("/")
+    return f"{name}.v{version}.schema.json"
+
+
+def render() -> dict[str, str]:
+    """File name -> JSON text, deterministic (sorted keys, trailing newline)."""
+    out: dict[str, str] = {}
+    entries: list[tuple[str, Any]] = [("rap.Envelope/1", Envelope)]
+    entries += [(m.TYPE, m) for m in MESSAGES]
+    for type_name, cls in entries:
+        schema = msgspec.json.schema(cls)
+        schema["$id"] = f"https://rap.dev/schemas/{_file_name(type_name)}"
+        schema["title"] = type_name
+        out[_file_name(type_name)] = json.dumps(schema, indent=2, sort_keys=True) + "\n"
+    return out
+
+
+def write(directory: Path) -> list[Path]:
+    """Write the export into ``directory`` and delete stale schema files there."""
+    directory.mkdir(parents=True, exist_ok=True)
+    files = render()
+    written = []
+    for stale in directory.glob("*.schema.json"):
+        if stale.name not in files:
+            stale.unlink()
+    for name, text in files.items():
+        path = directory / name
+        path.write_text(text, encoding="utf-8")
+        written.append(path)
+    return written
