@@ -24,7 +24,6 @@ class StageTrace(Message, frozen=True, omit_defaults=True):
     TYPE = "rap.StageTrace/1"
 
     node: str
-    stage: Stage
     handler: str
     phase: Literal["start", "end"]
     trigger: bytes
@@ -32,6 +31,8 @@ class StageTrace(Message, frozen=True, omit_defaults=True):
     trigger_key: str
     cycle: bytes
     ts: int
+    stage: Stage | None = None
+    """None for a node that declares no MAPLE-K stage."""
     duration_ns: int = 0
     """Handler run time; set on ``end``."""
     ok: bool = True

@@ -6,6 +6,7 @@ against ``zenoh.KeyExpr.intersects`` by a property test.
 
 from __future__ import annotations
 
+import itertools
 from functools import cache, lru_cache
 
 __all__ = ["KeyExprError", "intersects", "validate"]
@@ -31,8 +32,13 @@ def validate(expr: str) -> str:
                 f"key expression {expr!r}: chunk {chunk!r} uses '*', '$', "
                 "'#' or '?' inside a chunk; wildcards must be whole chunks"
             )
-    if "**/**" in expr:
-        raise KeyExprError(f"key expression {expr!r} repeats '**/**'; write a single '**'")
+    chunks = expr.split("/")
+    for first, second in itertools.pairwise(chunks):
+        if first == "**" and second in ("*", "**"):
+            fix = "a single '**'" if second == "**" else "'*/**'"
+            raise KeyExprError(
+                f"key expression {expr!r} is not canonical: write {fix} instead of '**/{second}'"
+            )
     return expr
 
 

@@ -116,7 +116,8 @@ class NodeRuntime:
         self._rejections: dict[str, _RateLimited] = {}
         self._trace_key = keys.trace(system, node.name)
         self._log_key = keys.log(system, node.name)
-        self._stage = node.stage.value if node.stage else "none"
+        self._stopping: anyio.Event | None = None
+        self._stop_requested = False
         self._state = "new"
 
     @property
@@ -159,7 +160,7 @@ class NodeRuntime:
     ) -> None:
         rec = StageTrace(
             node=self.node.name,
-            stage=self._stage,  # type: ignore[arg-type]
+            stage=self.node.stage,
             handler=route.handler_name,
             phase=phase,  # type: ignore[arg-type]
             trigger=env.uid,
@@ -271,6 +272,9 @@ class NodeRuntime:
                 f"node {self.node.name!r} runtime is {self._state}; a runtime runs once"
             )
         self._state = "running"
+        self._stopping = anyio.Event()
+        if self._stop_requested:
+            self._stopping.set()
         token = self.fabric.declare_token(keys.alive(self.system, self.node.name))
         try:
             async with anyio.create_task_group() as tg:
@@ -279,6 +283,8 @@ class NodeRuntime:
                     self._subs.append(sub)
                     tg.start_soon(self._consume, route, sub)
                 task_status.started()
+                await self._stopping.wait()
+                # consumers now drain what their closed inboxes still hold, then end
         finally:
             with anyio.CancelScope(shield=True):
                 await self._flush_rejections()
@@ -293,8 +299,11 @@ class NodeRuntime:
 
     def stop(self) -> None:
         """Stop taking new samples; queued ones are still handled, then ``run`` returns."""
+        self._stop_requested = True
         for sub in self._subs:
             sub.close()
+        if self._stopping is not None:
+            self._stopping.set()
 
 
 class NodeGroup:

@@ -99,7 +99,8 @@ class Harness:
         if first:
             self._port = free_port()
             return ZenohFabric(ZenohConfig(listen=[f"tcp/127.0.0.1:{self._port}"]))
-        return ZenohFabric(ZenohConfig(listen=[], connect=[f"tcp/127.0.0.1:{self._port}"]))
+        # a peer listens too (loopback, free port) so that gossip can mesh the peers
+        return ZenohFabric(ZenohConfig(connect=[f"tcp/127.0.0.1:{self._port}"]))
 
     @property
     def endpoint(self) -> str:
@@ -160,10 +161,17 @@ class Harness:
             )
             self._groups.append(group)
             runtimes += group.runtimes
-            # both directions reachable: the node hears the harness, the harness the node
-            for route_key in (group.runtimes[0].route_key(r) for r in node.routes):
-                await self.fabric.wait_matched(route_key, timeout=self.timeout)
-            await fabric.wait_matched(keys.trace(self.system, node.name), timeout=self.timeout)
+        # every sender reaches every route: the harness, and each node the others' routes
+        for rt in runtimes:
+            await rt.fabric.wait_matched(
+                keys.trace(self.system, rt.node.name), timeout=self.timeout
+            )
+            for other in runtimes:
+                for route in other.node.routes:
+                    key = other.route_key(route)
+                    await self.fabric.wait_matched(key, timeout=self.timeout)
+                    if other is not rt:
+                        await rt.fabric.wait_matched(key, timeout=self.timeout)
         return NodeGroup(runtimes)
 
     # -- feeding -----------------------------------------------------------------------

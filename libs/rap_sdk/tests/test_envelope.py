@@ -1,0 +1,96 @@
+from __future__ import annotations
+
+import msgspec
+import pytest
+from rap_schemas import Envelope
+from rap_sdk import Opener, RejectedSample, Sealer
+
+
+class FixedClock:
+    def __init__(self) -> None:
+        self.now = 1_700_000_000_000_000_000
+
+    def time_ns(self) -> int:
+        self.now += 1000
+        return self.now
+
+
+def sealed(sealer: Sealer, key: str = "rap/s/data/x") -> bytes:
+    payload, _ = sealer.seal(key, "rap.Empty/1", msgspec.msgpack.encode(None))
+    return payload
+
+
+def test_seal_stamps_uid_ts_and_per_key_seq() -> None:
+    clock = FixedClock()
+    s = Sealer("mon", clock)
+    envs = [s.seal(k, "rap.Empty/1", b"\xc0")[1] for k in ("rap/a", "rap/a", "rap/b", "rap/a")]
+    assert [e.seq for e in envs] == [0, 1, 0, 2]
+    assert len({e.uid for e in envs}) == 4
+    assert all(len(e.uid) == 16 and e.uid[6] >> 4 == 7 for e in envs)  # UUIDv7
+    assert [e.ts for e in envs] == sorted(e.ts for e in envs)
+    assert all(e.source == "mon" for e in envs)
+
+
+def test_cycle_cause_and_ctx_are_carried() -> None:
+    payload, _ = Sealer("p").seal(
+        "rap/s/event/e", "rap.Empty/1", b"\xc0", cycle=b"c" * 16, cause=b"k" * 16, ctx={"mask": 7}
+    )
+    back = msgspec.msgpack.decode(payload, type=Envelope)
+    assert (back.cycle, back.cause, back.ctx) == (b"c" * 16, b"k" * 16, {"mask": 7})
+
+
+def test_duplicates_dropped_gaps_and_reordering_counted() -> None:
+    s = Sealer("src", FixedClock())
+    p = [sealed(s) for _ in range(6)]
+    o = Opener()
+    order = [0, 1, 1, 3, 2, 5, 3]  # dup of 1, 2 late, 4 never, dup of 3
+    got = [o.open("rap/s/data/x", p[i]) for i in order]
+    assert [e.seq if e else None for e in got] == [0, 1, None, 3, 2, 5, None]
+    assert o.stats.duplicates == 2
+    assert o.stats.reordered == 1
+    assert o.stats.missing == 1  # seq 4
+
+
+def test_a_restarted_sender_is_not_taken_for_duplicates() -> None:
+    clock = FixedClock()
+    first = Sealer("src", clock)
+    o = Opener()
+    for _ in range(3):
+        assert o.open("rap/s/data/x", sealed(first)) is not None
+    again = Sealer("src", clock)  # same node id, new process: seq starts at 0
+    assert o.open("rap/s/data/x", sealed(again)) is not None
+    assert o.stats.restarts == 1
+    assert o.stats.duplicates == 0
+
+
+def test_sequences_are_tracked_per_key() -> None:
+    s = Sealer("src", FixedClock())
+    o = Opener()
+    for key in ("rap/a", "rap/b", "rap/a", "rap/b"):
+        assert o.open(key, sealed(s, key)) is not None
+    assert o.stats.missing == 0
+
+
+@pytest.mark.parametrize(
+    ("payload", "reason"),
+    [
+        (b"\xc1", "undecodable envelope"),
+        (b"\xff\x00garbage", "invalid envelope: Expected `object`"),
+        (msgspec.msgpack.encode({"uid": b"x"}), "invalid envelope: Object missing required"),
+        (
+            msgspec.msgpack.encode(
+                {"uid": b"1" * 16, "ts": "now", "source": "a", "seq": 0, "type": "t", "body": None}
+            ),
+            r"\$\.ts",
+        ),
+        (
+            msgspec.msgpack.encode(
+                {"uid": b"1", "ts": 1, "source": "a", "seq": 0, "type": "t", "body": None}
+            ),
+            "uid must be 16 bytes",
+        ),
+    ],
+)
+def test_bad_envelopes_are_rejected_with_a_reason(payload: bytes, reason: str) -> None:
+    with pytest.raises(RejectedSample, match=reason):
+        Opener().open("rap/s/data/x", payload)
