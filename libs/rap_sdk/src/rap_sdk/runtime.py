@@ -275,20 +275,24 @@ class NodeRuntime:
         self._stopping = anyio.Event()
         if self._stop_requested:
             self._stopping.set()
-        token = self.fabric.declare_token(keys.alive(self.system, self.node.name))
+        token = None
         try:
             async with anyio.create_task_group() as tg:
                 for route in self.node.routes:
                     sub = self.fabric.subscribe(self.route_key(route), route.policy)
                     self._subs.append(sub)
                     tg.start_soon(self._consume, route, sub)
+                # the token comes after the subscriptions: declarations on a link keep
+                # their order, so a peer that sees the token can already reach the node
+                token = self.fabric.declare_token(keys.alive(self.system, self.node.name))
                 task_status.started()
                 await self._stopping.wait()
                 # consumers now drain what their closed inboxes still hold, then end
         finally:
             with anyio.CancelScope(shield=True):
                 await self._flush_rejections()
-            token.undeclare()
+            if token is not None:
+                token.undeclare()
             for sub in self._subs:
                 sub.close()
             self._state = "stopped"

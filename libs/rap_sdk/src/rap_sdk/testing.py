@@ -63,6 +63,19 @@ class Record:
         return msgspec.msgpack.decode(self.envelope.body, type=cls)
 
 
+async def _await_alive(fabric: Fabric, system: str, names: set[str], timeout: float) -> None:
+    missing = set(names)
+    with fabric.watch_liveliness(keys.pattern(system, keys.Kind.ALIVE)) as watch:
+        try:
+            with anyio.fail_after(timeout):
+                while missing:
+                    change = await watch.get()
+                    if change.alive:
+                        missing.discard(keys.parse(change.key).name)
+        except TimeoutError:
+            raise TimeoutError(f"nodes {sorted(missing)} not alive within {timeout} s") from None
+
+
 class Harness:
     def __init__(
         self,
@@ -161,17 +174,16 @@ class Harness:
             )
             self._groups.append(group)
             runtimes += group.runtimes
-        # every sender reaches every route: the harness, and each node the others' routes
+        # Readiness by liveliness: a node declares its token after its subscriptions and
+        # peers do not forward declarations, so a session that sees a node's token is
+        # linked to it and knows its routes. Nodes reach the harness through its recorder.
+        names = {rt.node.name for rt in runtimes}
+        for fabric in [self.fabric, *(rt.fabric for rt in runtimes)]:
+            await _await_alive(fabric, self.system, names, self.timeout)
         for rt in runtimes:
             await rt.fabric.wait_matched(
                 keys.trace(self.system, rt.node.name), timeout=self.timeout
             )
-            for other in runtimes:
-                for route in other.node.routes:
-                    key = other.route_key(route)
-                    await self.fabric.wait_matched(key, timeout=self.timeout)
-                    if other is not rt:
-                        await rt.fabric.wait_matched(key, timeout=self.timeout)
         return NodeGroup(runtimes)
 
     # -- feeding -----------------------------------------------------------------------

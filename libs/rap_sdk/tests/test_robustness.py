@@ -1,0 +1,101 @@
+"""Bad input never crashes a node: every sample is delivered, rejected or dropped as a
+duplicate, and the node goes on handling good samples."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import anyio
+import msgspec
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from rap_schemas import MESSAGES, Envelope, LaserScan, keys
+from rap_sdk import Context, MemoryFabric, Node, NodeRuntime
+from rap_sdk.fabric import Sample
+
+KEY = keys.data("t", "scan")
+
+msgpack_values: st.SearchStrategy[Any] = st.recursive(
+    st.none()
+    | st.booleans()
+    | st.integers(-(2**63), 2**64 - 1)
+    | st.floats()
+    | st.text(max_size=8)
+    | st.binary(max_size=8),
+    lambda inner: (
+        st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=6), inner, max_size=4)
+    ),
+    max_leaves=12,
+)
+
+good_scans = st.builds(
+    LaserScan,
+    stamp=st.integers(0, 2**62),
+    frame_id=st.text(max_size=8),
+    angle_min=st.floats(allow_nan=False),
+    angle_increment=st.floats(allow_nan=False),
+    range_min=st.floats(allow_nan=False),
+    range_max=st.floats(allow_nan=False),
+    ranges=st.lists(st.floats(0, math.inf), max_size=8),
+)
+
+bodies = (
+    good_scans.map(msgspec.msgpack.encode)
+    | msgpack_values.map(msgspec.msgpack.encode)
+    | st.binary(max_size=32)
+)
+
+envelopes = st.builds(
+    lambda uid, ts, source, seq, type_, body: msgspec.msgpack.encode(
+        Envelope(uid=uid, ts=ts, source=source, seq=seq, type=type_, body=msgspec.Raw(body))
+    ),
+    uid=st.binary(min_size=15, max_size=17),
+    ts=st.integers(0, 2**63 - 1),
+    source=st.sampled_from(["a", "b"]),
+    seq=st.integers(0, 5),
+    type_=st.sampled_from([LaserScan.TYPE, *(m.TYPE for m in MESSAGES[:3]), "junk"]),
+    body=bodies,
+)
+
+payloads = st.binary(max_size=64) | msgpack_values.map(msgspec.msgpack.encode) | envelopes
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.lists(payloads, min_size=1, max_size=25))
+def test_any_payload_is_delivered_or_rejected_never_a_crash(batch: list[bytes]) -> None:
+    anyio.run(_feed, batch)
+
+
+async def _feed(batch: list[bytes]) -> None:
+    node = Node("n", stage="monitor")
+    delivered: list[LaserScan] = []
+
+    @node.on_data("scan")
+    async def on_scan(ctx: Context, scan: LaserScan) -> None:
+        delivered.append(scan)
+
+    async with MemoryFabric() as fabric:
+        rt = NodeRuntime(node, fabric, system="t")
+        for payload in batch:
+            await rt.handle(node.routes[0], Sample(KEY, payload))
+        s, dup = rt.stats, rt.sender_stats.duplicates
+        assert s.received == len(batch)
+        assert s.handled + s.failed + s.rejected + dup == len(batch)
+        assert s.failed == 0
+        assert len(delivered) == s.handled
+        # and the node still works
+        good = msgspec.msgpack.encode(
+            LaserScan(
+                stamp=1,
+                frame_id="f",
+                angle_min=0.0,
+                angle_increment=1.0,
+                range_min=0.0,
+                range_max=1.0,
+                ranges=[],
+            )
+        )
+        payload, _ = rt.sealer.seal(KEY, LaserScan.TYPE, good)
+        await rt.handle(node.routes[0], Sample(KEY, payload))
+        assert delivered[-1].stamp == 1
