@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import random
+import struct
 import time
 from typing import Final, Protocol
 
@@ -20,7 +21,8 @@ from .errors import RejectedSample
 
 __all__ = ["Clock", "Opener", "Sealer", "SenderStats", "SystemClock", "new_uid"]
 
-_MASK62: Final = (1 << 62) - 1
+_VARIANT: Final = 0b10 << 62
+_PACK = struct.Struct(">QQ").pack
 
 
 class Clock(Protocol):
@@ -39,10 +41,13 @@ class _UidSource:
     bits. Random bits come from a per-process generator seeded from the OS (uniqueness,
     not secrecy, is what a message id needs)."""
 
+    __slots__ = ("_counter", "_hi", "_last_ms", "_rand")
+
     def __init__(self) -> None:
-        self._rng = random.Random(os.urandom(16))
+        self._rand = random.Random(os.urandom(16)).getrandbits
         self._last_ms = -1
         self._counter = 0
+        self._hi = 0
 
     def __call__(self, ts_ns: int) -> bytes:
         ms = ts_ns // 1_000_000
@@ -51,14 +56,8 @@ class _UidSource:
         else:
             self._last_ms = ms
             self._counter = 0
-        value = (
-            (ms & 0xFFFF_FFFF_FFFF) << 80
-            | 0x7 << 76
-            | self._counter << 64
-            | 0b10 << 62
-            | (self._rng.getrandbits(62) & _MASK62)
-        )
-        return value.to_bytes(16, "big")
+            self._hi = (ms & 0xFFFF_FFFF_FFFF) << 16 | 0x7 << 12
+        return _PACK(self._hi | self._counter, _VARIANT | self._rand(62))
 
 
 new_uid = _UidSource()

@@ -10,9 +10,10 @@ it never stops the node.
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import signal
-from collections.abc import AsyncIterator, Sequence
+from collections.abc import AsyncIterator, Callable, Sequence
 from contextlib import asynccontextmanager
 from typing import Any
 
@@ -69,15 +70,15 @@ class Context:
 
     async def emit(self, name: str, message: Message | None = None) -> Envelope:
         """Emit event ``name`` in this cycle, caused by the triggering envelope."""
-        return await self._rt.send(
-            keys.event(self._rt.system, name), message, cycle=self.cycle, cause=self.envelope.uid
-        )
+        rt = self._rt
+        key = rt.event_keys.get(name) or rt.build_key(keys.event, name, rt.event_keys)
+        return await rt.send(key, message, cycle=self.cycle, cause=self.envelope.uid)
 
     async def publish(self, topic: str, message: Message) -> Envelope:
         """Publish on data topic ``topic`` in this cycle."""
-        return await self._rt.send(
-            keys.data(self._rt.system, topic), message, cycle=self.cycle, cause=self.envelope.uid
-        )
+        rt = self._rt
+        key = rt.data_keys.get(topic) or rt.build_key(keys.data, topic, rt.data_keys)
+        return await rt.send(key, message, cycle=self.cycle, cause=self.envelope.uid)
 
 
 class _RateLimited:
@@ -111,14 +112,30 @@ class NodeRuntime:
         self.sealer = Sealer(node.name, self.clock)
         self.opener = Opener()
         self.stats = NodeStats()
-        self._lock = anyio.Lock()
+        # one consumer task per route: a node with one route is serialised already; with
+        # several, a lock keeps one handler at a time (asyncio's: no loop turn uncontended)
+        self._lock = asyncio.Lock() if len(node.routes) > 1 else None
         self._subs: list[Subscription] = []
         self._rejections: dict[str, _RateLimited] = {}
         self._trace_key = keys.trace(system, node.name)
         self._log_key = keys.log(system, node.name)
         self._stopping: anyio.Event | None = None
         self._stop_requested = False
+        self.event_keys: dict[str, str] = {}
+        self.data_keys: dict[str, str] = {}
         self._state = "new"
+
+    def build_key(
+        self,
+        build: Callable[[str, str], str],
+        name: str,
+        cache: dict[str, str],
+    ) -> str:
+        """Build (and validate) a key once; handlers then reuse it from ``cache``."""
+        key = build(self.system, name)
+        if len(cache) < 4096:
+            cache[name] = key
+        return key
 
     @property
     def sender_stats(self) -> SenderStats:
@@ -236,13 +253,19 @@ class NodeRuntime:
                 await self._reject(sample.key, f"invalid {env.type} body: {exc}", env)
                 return
         ctx = Context(self, sample.key, env, message)
-        async with self._lock:
+        if self._lock is None:
             await self._call(route, ctx)
+        else:
+            async with self._lock:
+                await self._call(route, ctx)
 
     async def _call(self, route: Route, ctx: Context) -> None:
         clock, env, cycle = self.clock, ctx.envelope, ctx.cycle
-        start = clock.time_ns()
-        if self.trace:
+        # records nobody subscribes to are not built (decided once per call: pairs stay whole)
+        traced = self.trace and self.fabric.has_subscribers(self._trace_key)
+        start = 0
+        if traced:
+            start = clock.time_ns()
             await self._trace(route, "start", ctx.key, env, cycle, start)
         error = ""
         try:
@@ -258,7 +281,7 @@ class NodeRuntime:
             )
         else:
             self.stats.handled += 1
-        if self.trace:
+        if traced:
             end = clock.time_ns()
             await self._trace(route, "end", ctx.key, env, cycle, end, end - start, error)
 
@@ -298,8 +321,13 @@ class NodeRuntime:
             self._state = "stopped"
 
     async def _consume(self, route: Route, sub: Subscription) -> None:
-        async for sample in sub:
-            await self.handle(route, sample)
+        get, handle = sub.get, self.handle
+        while True:
+            try:
+                sample = await get()
+            except LifecycleError:  # closed and drained
+                return
+            await handle(route, sample)
 
     def stop(self) -> None:
         """Stop taking new samples; queued ones are still handled, then ``run`` returns."""

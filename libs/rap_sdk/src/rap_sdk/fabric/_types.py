@@ -113,6 +113,10 @@ class Fabric(Protocol):
 
     def subscribe(self, key_expr: str, policy: InboxPolicy | None = None) -> Subscription: ...
 
+    def has_subscribers(self, key: str) -> bool:
+        """Whether a subscriber here or elsewhere matches ``key`` now (publishers may skip
+        building samples nobody would receive)."""
+
     def serve(self, key_expr: str, handler: QueryHandler) -> Queryable: ...
 
     async def wait_matched(

@@ -155,6 +155,10 @@ class MemoryFabric:
                     remote = Sample(key, payload, remote=True)
                 sub.inbox.offer(remote)
 
+    def has_subscribers(self, key: str) -> bool:
+        self._life.check_open()
+        return any(m._router.matching(key) for m in self.bus.members)
+
     def subscribe(self, key_expr: str, policy: InboxPolicy | None = None) -> LocalSubscription:
         self._life.check_open()
         validate(key_expr)

@@ -71,6 +71,12 @@ class ZenohConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_on
         return json.dumps(conf)
 
 
+def _matching(entity: Any) -> bool:
+    """A publisher's or querier's matching status. (The stubs type ``matching_status``
+    as bool; at run time it is a MatchingStatus whose ``matching`` says it.)"""
+    return bool(entity.matching_status.matching)
+
+
 class _Handle:
     """A token or queryable: undeclares its Zenoh entity once."""
 
@@ -98,6 +104,12 @@ class ZenohFabric:
         self._session: zenoh.Session | None = None
         self._handoff: LoopHandoff | None = None
         self._publishers: dict[str, zenoh.Publisher] = {}
+        self._listeners: dict[str, Any] = {}
+        self._remote_match: dict[str, bool] = {}
+        self._match_waiters: dict[str, list[anyio.Event]] = {}
+        """Per publisher key: whether a remote subscriber matches, kept current by a
+        matching listener (a bool store on Zenoh's thread; reading it costs a dict
+        lookup instead of a query into Zenoh)."""
         self._handles: set[_Handle] = set()
         self._watches: list[InboxStream[LivelinessChange]] = []
         self._stack: contextlib.AsyncExitStack | None = None
@@ -149,9 +161,10 @@ class ZenohFabric:
             sub.close()
         for w in list(self._watches):
             w.close()
-        for pub in self._publishers.values():
+        for entity in [*self._listeners.values(), *self._publishers.values()]:
             with contextlib.suppress(zenoh.ZError):
-                pub.undeclare()
+                entity.undeclare()
+        self._listeners.clear()
         self._publishers.clear()
         self._life.task_group.cancel_scope.cancel()
         self._life.closing()
@@ -176,7 +189,11 @@ class ZenohFabric:
         pub = self._publishers.get(key)
         if pub is None:
             pub = self._declare_publisher(key)
-        pub.put(payload)
+        # The matching flag flips on Zenoh's thread when a remote subscriber's
+        # declaration reaches this session, i.e. when Zenoh's own routing would start
+        # sending it samples: skipping the put before then loses nothing Zenoh delivers.
+        if self._remote_match[key]:
+            pub.put(payload)
 
     def _declare_publisher(self, key: str) -> zenoh.Publisher:
         validate(key)
@@ -186,13 +203,33 @@ class ZenohFabric:
                 "concrete key built by rap_schemas.keys"
             )
         if len(self._publishers) >= 1024:
-            _, old = self._publishers.popitem()
+            old_key, old = self._publishers.popitem()
+            self._listeners.pop(old_key).undeclare()
+            self._remote_match.pop(old_key, None)
             old.undeclare()
         pub = self.session.declare_publisher(
             key, congestion_control=self._cc, allowed_destination=zenoh.Locality.REMOTE
         )
+        matches, waiters = self._remote_match, self._match_waiters
+        push = self._handoff.push  # type: ignore[union-attr]
+
+        def on_status(status: zenoh.MatchingStatus) -> None:
+            matches[key] = status.matching  # set before waking: a woken waiter sees it
+            if status.matching and key in waiters:
+                push(self._wake_matched, key)
+
+        self._listeners[key] = pub.declare_matching_listener(self._callback(on_status))
+        matches.setdefault(key, _matching(pub))
         self._publishers[key] = pub
         return pub
+
+    def has_subscribers(self, key: str) -> bool:
+        self._life.check_open()
+        if self._router.matching(key):
+            return True
+        if key not in self._publishers:
+            self._declare_publisher(key)
+        return self._remote_match[key]
 
     def subscribe(self, key_expr: str, policy: InboxPolicy | None = None) -> LocalSubscription:
         self._life.check_open()
@@ -225,34 +262,57 @@ class ZenohFabric:
         queryable) matching ``key``: the way to know a remote peer is ready, no sleep."""
         self._life.check_open()
         validate(key)
-        ready = anyio.Event()
-        push = self._handoff.push  # type: ignore[union-attr]
-        entity: Any
+        what = "queryable" if queryable else "subscriber"
+        fail = FabricError(
+            f"no remote {what} matched {key!r} within {timeout} s; is the peer running "
+            "and connected (check listen/connect)?"
+        )
         if queryable:
-            entity = self.session.declare_querier(key)
-        else:
-            entity = self._publishers.get(key) or self._declare_publisher(key)
+            ready = anyio.Event()
+            push = self._handoff.push  # type: ignore[union-attr]
+            querier = self.session.declare_querier(key)
 
-        def on_status(status: zenoh.MatchingStatus) -> None:
-            if status.matching:
-                push(lambda _: ready.set(), None)
+            def on_status(status: zenoh.MatchingStatus) -> None:
+                if status.matching:
+                    push(lambda _: ready.set(), None)
 
-        listener = entity.declare_matching_listener(self._callback(on_status))
+            listener = querier.declare_matching_listener(self._callback(on_status))
+            try:
+                if not _matching(querier):
+                    with anyio.fail_after(timeout):
+                        await ready.wait()
+            except TimeoutError:
+                raise fail from None
+            finally:
+                listener.undeclare()
+                querier.undeclare()
+            return
+        # subscribers: the same flag that publish() consults, so a publish right after
+        # this returns is sent
+        if key not in self._publishers:
+            self._declare_publisher(key)
+        waiters = self._match_waiters.setdefault(key, [])
+        mine = anyio.Event()
+        waiters.append(mine)
         try:
-            if entity.matching_status.matching:
-                return
             with anyio.fail_after(timeout):
-                await ready.wait()
+                while not self._remote_match[key]:
+                    await mine.wait()
+                    if not self._remote_match[key]:  # flipped back: wait for the next
+                        waiters.remove(mine)
+                        mine = anyio.Event()
+                        waiters.append(mine)
         except TimeoutError:
-            what = "queryable" if queryable else "subscriber"
-            raise FabricError(
-                f"no remote {what} matched {key!r} within {timeout} s; is "
-                "the peer running and connected (check listen/connect)?"
-            ) from None
+            raise fail from None
         finally:
-            listener.undeclare()
-            if queryable:
-                entity.undeclare()
+            if mine in waiters:
+                waiters.remove(mine)
+            if not waiters and self._match_waiters.get(key) is waiters:
+                del self._match_waiters[key]
+
+    def _wake_matched(self, key: str) -> None:
+        for event in self._match_waiters.get(key, ()):
+            event.set()
 
     # -- query/reply -------------------------------------------------------------------
 

@@ -1,0 +1,236 @@
+"""``python -m bench.fabric [--quick] [--report-only]``: run every fabric measurement in
+one run, write bench/results/fabric.json and the fabric section of docs/benchmarks.md,
+and exit 1 when a budget is missed (unless --report-only)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+import anyio
+
+from ..report import hardware, hardware_line, summary_us, table, write_json, write_section
+from . import local, remote
+
+SIZES = (64, 4096)
+BUDGETS = {"sdk_vs_raw_zenoh_p50": 1.3, "inproc_vs_queue_p50": 3.0}
+
+
+def run(fn: Callable[..., Awaitable[Any]], *args: Any, uvloop: bool = False, **kw: Any) -> Any:
+    async def main() -> Any:
+        return await fn(*args, **kw)
+
+    return anyio.run(main, backend_options={"use_uvloop": uvloop})
+
+
+def step(msg: str) -> None:
+    print(f"  {msg}", file=sys.stderr, flush=True)
+
+
+def hop_us(rtt: dict[str, float]) -> dict[str, float]:
+    """One hop = half a ping-pong round trip."""
+    return {k: (round(v / 2, 2) if k.endswith("_us") else v) for k, v in rtt.items()}
+
+
+def measure(quick: bool) -> dict[str, Any]:
+    iters, warm = (300, 50) if quick else (3000, 300)
+    tput_n = {64: 5000 if quick else 50000, 4096: 2000 if quick else 20000}
+    out: dict[str, Any] = {"latency": {}, "throughput": {}, "inproc": {}, "handoff": {}}
+
+    latency_cases: list[tuple[str, Callable[..., Awaitable[list[int]]], dict[str, Any]]] = [
+        ("rap_sdk/zenoh", remote.sdk_latency, {}),
+        ("raw zenoh-python -> asyncio", remote.zenoh_latency, {}),
+        ("rap_sdk/zenoh (uvloop)", remote.sdk_latency, {"uvloop": True}),
+        ("raw zenoh-python -> asyncio (uvloop)", remote.zenoh_latency, {"uvloop": True}),
+        ("rap_sdk/zenoh (indirect callbacks)", remote.sdk_latency, {"direct": False}),
+        (
+            "raw zenoh-python, loop callback only (floor)",
+            remote.zenoh_latency,
+            {"via_queue": False},
+        ),
+        ("asyncio TCP echo", remote.tcp_latency, {}),
+    ]
+    for size in SIZES:
+        for name, fn, kw in latency_cases:
+            step(f"latency {name} {size} B")
+            ns = run(fn, size, iters, warm, **kw)
+            out["latency"].setdefault(str(size), {})[name] = hop_us(summary_us(ns))
+
+    tput_cases: list[tuple[str, Callable[..., Awaitable[dict[str, Any]]]]] = [
+        ("rap_sdk/zenoh", remote.sdk_throughput),
+        ("raw zenoh-python -> asyncio", remote.zenoh_throughput),
+        ("asyncio TCP", remote.tcp_throughput),
+    ]
+    for size in SIZES:
+        for name, fn in tput_cases:
+            step(f"throughput {name} {size} B")
+            r = run(fn, size, tput_n[size])
+            secs = (r["last_ns"] - r["first_ns"]) / 1e9
+            rate = (r["n"] - 1) / secs if secs > 0 else float("inf")
+            out["throughput"].setdefault(str(size), {})[name] = {
+                "msgs_per_s": round(rate),
+                "mib_per_s": round(rate * size / 2**20, 1),
+                "n": r["n"],
+            }
+
+    inproc_cases: list[tuple[str, Callable[..., Awaitable[list[int]]], dict[str, Any]]] = [
+        ("asyncio.Queue hop", local.queue_hop, {}),
+        ("rap_sdk stage->stage (ZenohFabric, traced)", local.stage_hop, {"kind": "zenoh"}),
+        (
+            "rap_sdk stage->stage (ZenohFabric, untraced)",
+            local.stage_hop,
+            {"kind": "zenoh", "trace": False},
+        ),
+        ("rap_sdk stage->stage (MemoryFabric, traced)", local.stage_hop, {"kind": "memory"}),
+        (
+            "rap_sdk stage->stage (ZenohFabric, traced, remote trace subscriber)",
+            local.stage_hop,
+            {"kind": "zenoh", "trace_listener": True},
+        ),
+        ("asyncio.Queue hop (uvloop)", local.queue_hop, {"uvloop": True}),
+        (
+            "rap_sdk stage->stage (ZenohFabric, traced, uvloop)",
+            local.stage_hop,
+            {"kind": "zenoh", "uvloop": True},
+        ),
+    ]
+    for name, fn, kw in inproc_cases:
+        step(f"in-process {name}")
+        uv = kw.pop("uvloop", False)
+        args = (kw.pop("kind"), iters * 3, warm) if "kind" in kw else (iters * 3, warm)
+        out["inproc"][name] = summary_us(run(fn, *args, uvloop=uv, **kw))
+
+    for scheme in ("per-sample call_soon_threadsafe", "batched"):
+        for uv in (False, True):
+            name = f"{scheme}{' (uvloop)' if uv else ''}"
+            step(f"hand-off {name}")
+            r = run(
+                local.handoff,
+                "batched" if scheme == "batched" else "single",
+                iters,
+                200_000 if not quick else 20_000,
+                uvloop=uv,
+            )
+            out["handoff"][name] = {
+                **summary_us(r["latency_ns"]),
+                "burst_items_per_s": r["burst_items_per_s"],
+            }
+    return out
+
+
+def ratios(m: dict[str, Any]) -> dict[str, Any]:
+    r: dict[str, Any] = {}
+    for size, c in m["latency"].items():
+        for loop in ("", " (uvloop)"):
+            raw = c[f"raw zenoh-python -> asyncio{loop}"]["p50_us"]
+            tag = "uvloop" if loop else "asyncio"
+            r[f"sdk_vs_raw_zenoh_p50@{size}/{tag}"] = round(
+                c[f"rap_sdk/zenoh{loop}"]["p50_us"] / raw, 2
+            )
+    q = m["inproc"]["asyncio.Queue hop"]["p50_us"]
+    qu = m["inproc"]["asyncio.Queue hop (uvloop)"]["p50_us"]
+    r["inproc_vs_queue_p50/asyncio"] = round(
+        m["inproc"]["rap_sdk stage->stage (ZenohFabric, traced)"]["p50_us"] / q, 2
+    )
+    r["inproc_vs_queue_p50/uvloop"] = round(
+        m["inproc"]["rap_sdk stage->stage (ZenohFabric, traced, uvloop)"]["p50_us"] / qu, 2
+    )
+    r["inproc_untraced_vs_queue_p50/asyncio"] = round(
+        m["inproc"]["rap_sdk stage->stage (ZenohFabric, untraced)"]["p50_us"] / q, 2
+    )
+    return r
+
+
+def verdicts(r: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    v = {}
+    for key, value in r.items():
+        base = key.split("@")[0].split("/")[0]
+        if base in BUDGETS:
+            v[key] = {"ratio": value, "budget": BUDGETS[base], "ok": value <= BUDGETS[base]}
+    return v
+
+
+def render(m: dict[str, Any], r: dict[str, Any], v: dict[str, Any], hw: dict[str, Any]) -> str:
+    parts = ["## Fabric (`make bench-fabric`)", "", f"Hardware: {hw_line(hw)}", ""]
+    parts += [
+        "One-hop latency between two processes on loopback (half of a ping-pong round "
+        "trip; the SDK hop includes envelope sealing/opening, typed decoding and the "
+        "responder's trace records). Ratios are against raw zenoh-python handing each "
+        "sample into asyncio, measured in the same run.",
+        "",
+    ]
+    rows = []
+    for size, cases in m["latency"].items():
+        for name, s in cases.items():
+            loop = " (uvloop)" if "uvloop" in name else ""
+            raw = cases[f"raw zenoh-python -> asyncio{loop}"]["p50_us"]
+            rows.append([f"{size} B", name, s["p50_us"], s["p99_us"], f"{s['p50_us'] / raw:.2f}"])
+    parts += [table(["size", "path", "p50 µs", "p99 µs", "p50 vs raw zenoh (same loop)"], rows), ""]
+    parts += ["One-way throughput between two processes (receiver-side rate):", ""]
+    rows = [
+        [f"{size} B", name, f"{s['msgs_per_s']:,}", s["mib_per_s"]]
+        for size, cases in m["throughput"].items()
+        for name, s in cases.items()
+    ]
+    parts += [table(["size", "path", "msgs/s", "MiB/s"], rows), ""]
+    parts += [
+        "In-process stage-to-stage delivery (emit -> next stage's handler start) vs a "
+        "bare asyncio.Queue hop between two tasks:",
+        "",
+    ]
+    q = m["inproc"]["asyncio.Queue hop"]["p50_us"]
+    qu = m["inproc"]["asyncio.Queue hop (uvloop)"]["p50_us"]
+    rows = [
+        [name, s["p50_us"], s["p99_us"], f"{s['p50_us'] / (qu if 'uvloop' in name else q):.2f}"]
+        for name, s in m["inproc"].items()
+    ]
+    parts += [table(["path", "p50 µs", "p99 µs", "p50 vs queue"], rows), ""]
+    parts += [
+        "Transport thread -> event loop hand-off (one item at a time; and a burst "
+        "from one thread):",
+        "",
+    ]
+    rows = [
+        [name, s["p50_us"], s["p99_us"], f"{s['burst_items_per_s']:,}"]
+        for name, s in m["handoff"].items()
+    ]
+    parts += [table(["scheme", "p50 µs", "p99 µs", "burst items/s"], rows), ""]
+    parts += ["Budgets:", ""]
+    rows = [
+        [k, val["ratio"], val["budget"], "ok" if val["ok"] else "MISSED"] for k, val in v.items()
+    ]
+    parts += [table(["ratio", "measured", "budget", ""], rows)]
+    return "\n".join(parts)
+
+
+def hw_line(hw: dict[str, Any]) -> str:
+    return hardware_line(hw)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(prog="python -m bench.fabric")
+    ap.add_argument("--quick", action="store_true", help="fewer iterations (smoke run)")
+    ap.add_argument("--report-only", action="store_true", help="exit 0 even if over budget")
+    args = ap.parse_args()
+    hw = hardware()
+    print(f"bench/fabric on {hardware_line(hw)}", file=sys.stderr)
+    m = measure(args.quick)
+    r = ratios(m)
+    v = verdicts(r)
+    data = {"hardware": hw, "quick": args.quick, "measurements": m, "ratios": r, "budgets": v}
+    path = write_json("fabric", data)
+    if not args.quick:
+        write_section("fabric", render(m, r, v, hw))
+    print(render(m, r, v, hw))
+    print(f"\nwrote {path}" + ("" if args.quick else " and docs/benchmarks.md"), file=sys.stderr)
+    missed = [k for k, val in v.items() if not val["ok"]]
+    if missed and not args.report_only:
+        print(f"budget missed: {', '.join(missed)}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
