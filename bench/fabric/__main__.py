@@ -11,10 +11,19 @@ from typing import Any
 
 import anyio
 
-from ..report import hardware, hardware_line, summary_us, table, write_json, write_section
+from ..report import (
+    hardware,
+    hardware_line,
+    pct,
+    summary_us,
+    table,
+    write_json,
+    write_section,
+)
 from . import local, remote
 
 SIZES = (64, 4096)
+ROUNDS = 5
 BUDGETS = {"sdk_vs_raw_zenoh_p50": 1.3, "inproc_vs_queue_p50": 3.0}
 
 
@@ -45,6 +54,7 @@ def measure(quick: bool) -> dict[str, Any]:
         ("rap_sdk/zenoh (uvloop)", remote.sdk_latency, {"uvloop": True}),
         ("raw zenoh-python -> asyncio (uvloop)", remote.zenoh_latency, {"uvloop": True}),
         ("rap_sdk/zenoh (indirect callbacks)", remote.sdk_latency, {"direct": False}),
+        ("rap_sdk fabric only, no envelope/node (diagnostic)", remote.fabric_latency, {}),
         (
             "raw zenoh-python, loop callback only (floor)",
             remote.zenoh_latency,
@@ -52,11 +62,21 @@ def measure(quick: bool) -> dict[str, Any]:
         ),
         ("asyncio TCP echo", remote.tcp_latency, {}),
     ]
+    # interleaved rounds, samples pooled: drift on a shared machine hits every path alike
     for size in SIZES:
-        for name, fn, kw in latency_cases:
-            step(f"latency {name} {size} B")
-            ns = run(fn, size, iters, warm, **kw)
-            out["latency"].setdefault(str(size), {})[name] = hop_us(summary_us(ns))
+        pooled: dict[str, list[int]] = {name: [] for name, _, _ in latency_cases}
+        per_round: dict[str, list[float]] = {name: [] for name, _, _ in latency_cases}
+        for rnd in range(ROUNDS):
+            for name, fn, kw in latency_cases:
+                step(f"latency {name} {size} B (round {rnd + 1}/{ROUNDS})")
+                ns = run(fn, size, iters // ROUNDS, warm, **kw)
+                pooled[name] += ns
+                per_round[name].append(pct(ns, 0.5))
+        for name, ns in pooled.items():
+            out["latency"].setdefault(str(size), {})[name] = {
+                **hop_us(summary_us(ns)),
+                "round_p50s_ns": per_round[name],
+            }
 
     tput_cases: list[tuple[str, Callable[..., Awaitable[dict[str, Any]]]]] = [
         ("rap_sdk/zenoh", remote.sdk_throughput),
@@ -120,54 +140,74 @@ def measure(quick: bool) -> dict[str, Any]:
     return out
 
 
+def paired(cases: dict[str, Any], a: str, b: str) -> float:
+    """Median over rounds of p50(a)/p50(b), each pair measured back to back."""
+    ra, rb = cases[a]["round_p50s_ns"], cases[b]["round_p50s_ns"]
+    return round(pct([x / y for x, y in zip(ra, rb, strict=True)], 0.5), 2)
+
+
 def ratios(m: dict[str, Any]) -> dict[str, Any]:
     r: dict[str, Any] = {}
+    raw, floor = "raw zenoh-python -> asyncio", "raw zenoh-python, loop callback only (floor)"
     for size, c in m["latency"].items():
-        for loop in ("", " (uvloop)"):
-            raw = c[f"raw zenoh-python -> asyncio{loop}"]["p50_us"]
-            tag = "uvloop" if loop else "asyncio"
-            r[f"sdk_vs_raw_zenoh_p50@{size}/{tag}"] = round(
-                c[f"rap_sdk/zenoh{loop}"]["p50_us"] / raw, 2
-            )
-    q = m["inproc"]["asyncio.Queue hop"]["p50_us"]
-    qu = m["inproc"]["asyncio.Queue hop (uvloop)"]["p50_us"]
+        r[f"sdk_vs_raw_zenoh_p50@{size}/asyncio"] = paired(c, "rap_sdk/zenoh", raw)
+        r[f"sdk_vs_raw_zenoh_p50@{size}/uvloop"] = paired(
+            c, "rap_sdk/zenoh (uvloop)", f"{raw} (uvloop)"
+        )
+        r[f"sdk_vs_raw_callback_floor_p50@{size}/asyncio"] = paired(c, "rap_sdk/zenoh", floor)
+    inproc = m["inproc"]
+    q, qu = inproc["asyncio.Queue hop"]["p50_us"], inproc["asyncio.Queue hop (uvloop)"]["p50_us"]
     r["inproc_vs_queue_p50/asyncio"] = round(
-        m["inproc"]["rap_sdk stage->stage (ZenohFabric, traced)"]["p50_us"] / q, 2
+        inproc["rap_sdk stage->stage (ZenohFabric, traced)"]["p50_us"] / q, 2
     )
     r["inproc_vs_queue_p50/uvloop"] = round(
-        m["inproc"]["rap_sdk stage->stage (ZenohFabric, traced, uvloop)"]["p50_us"] / qu, 2
-    )
-    r["inproc_untraced_vs_queue_p50/asyncio"] = round(
-        m["inproc"]["rap_sdk stage->stage (ZenohFabric, untraced)"]["p50_us"] / q, 2
+        inproc["rap_sdk stage->stage (ZenohFabric, traced, uvloop)"]["p50_us"] / qu, 2
     )
     return r
 
 
 def verdicts(r: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Budgets are checked on the standard asyncio loop, as the issue states them;
+    the uvloop and callback-floor ratios are reported beside them, not checked."""
     v = {}
     for key, value in r.items():
         base = key.split("@")[0].split("/")[0]
         if base in BUDGETS:
-            v[key] = {"ratio": value, "budget": BUDGETS[base], "ok": value <= BUDGETS[base]}
+            checked = key.endswith("/asyncio")
+            v[key] = {
+                "ratio": value,
+                "budget": BUDGETS[base],
+                "checked": checked,
+                "ok": value <= BUDGETS[base],
+            }
     return v
 
 
 def render(m: dict[str, Any], r: dict[str, Any], v: dict[str, Any], hw: dict[str, Any]) -> str:
     parts = ["## Fabric (`make bench-fabric`)", "", f"Hardware: {hw_line(hw)}", ""]
     parts += [
-        "One-hop latency between two processes on loopback (half of a ping-pong round "
-        "trip; the SDK hop includes envelope sealing/opening, typed decoding and the "
-        "responder's trace records). Ratios are against raw zenoh-python handing each "
-        "sample into asyncio, measured in the same run.",
+        "One-hop latency between two processes on loopback: half of a ping-pong round trip, "
+        "measured from the send call to the coroutine that receives the reply. The SDK hop "
+        "includes envelope sealing and opening, duplicate tracking, typed decoding and the "
+        "node runtime. The baseline, raw zenoh-python -> asyncio, hands each sample from "
+        "the Zenoh callback to the loop (call_soon_threadsafe) and through an asyncio.Queue "
+        "to a coroutine, on both sides. The floor row handles the sample in the loop "
+        "callback itself and never reaches coroutine code; every async handler costs at "
+        "least one loop turn more than that. † Paths run interleaved in 5 rounds; a ratio is "
+        "the median over rounds of the two p50s measured back to back (the machine's drift "
+        "between runs is larger than the differences measured); p50/p99 pool all rounds.",
         "",
     ]
     rows = []
     for size, cases in m["latency"].items():
         for name, s in cases.items():
             loop = " (uvloop)" if "uvloop" in name else ""
-            raw = cases[f"raw zenoh-python -> asyncio{loop}"]["p50_us"]
-            rows.append([f"{size} B", name, s["p50_us"], s["p99_us"], f"{s['p50_us'] / raw:.2f}"])
-    parts += [table(["size", "path", "p50 µs", "p99 µs", "p50 vs raw zenoh (same loop)"], rows), ""]
+            ratio = paired(cases, name, f"raw zenoh-python -> asyncio{loop}")
+            rows.append([f"{size} B", name, s["p50_us"], s["p99_us"], f"{ratio:.2f}"])
+    parts += [
+        table(["size", "path", "p50 µs", "p99 µs", "p50 vs raw zenoh, same loop †"], rows),
+        "",
+    ]
     parts += ["One-way throughput between two processes (receiver-side rate):", ""]
     rows = [
         [f"{size} B", name, f"{s['msgs_per_s']:,}", s["mib_per_s"]]
@@ -197,10 +237,18 @@ def render(m: dict[str, Any], r: dict[str, Any], v: dict[str, Any], hw: dict[str
         for name, s in m["handoff"].items()
     ]
     parts += [table(["scheme", "p50 µs", "p99 µs", "burst items/s"], rows), ""]
-    parts += ["Budgets:", ""]
-    rows = [
-        [k, val["ratio"], val["budget"], "ok" if val["ok"] else "MISSED"] for k, val in v.items()
+    parts += [
+        "Budgets (checked on the standard asyncio loop, where the issue states them; "
+        "uvloop and the callback floor are reported beside them):",
+        "",
     ]
+    rows = []
+    for k, val in v.items():
+        verdict = "ok" if val["ok"] else "MISSED"
+        if not val["checked"]:
+            verdict = ("within" if val["ok"] else "over") + " (reported)"
+        rows.append([k, val["ratio"], val["budget"], verdict])
+    rows += [[k, val, "-", "reported"] for k, val in r.items() if "floor" in k]
     parts += [table(["ratio", "measured", "budget", ""], rows)]
     return "\n".join(parts)
 
@@ -225,7 +273,7 @@ def main() -> int:
         write_section("fabric", render(m, r, v, hw))
     print(render(m, r, v, hw))
     print(f"\nwrote {path}" + ("" if args.quick else " and docs/benchmarks.md"), file=sys.stderr)
-    missed = [k for k, val in v.items() if not val["ok"]]
+    missed = [k for k, val in v.items() if val["checked"] and not val["ok"]]
     if missed and not args.report_only:
         print(f"budget missed: {', '.join(missed)}", file=sys.stderr)
         return 1

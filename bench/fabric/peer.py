@@ -104,6 +104,18 @@ async def raw(role: str, addr: str, n: int, via_queue: bool) -> None:
     session.close()
 
 
+async def fabric_only(addr: str) -> None:
+    """The fabric alone: subscription inbox in, publish out; no envelope, no node."""
+    async with ZenohFabric(sdk_config(addr)) as fabric:
+        sub = fabric.subscribe(keys.data(SYSTEM, "ping"), InboxPolicy(capacity=16))
+        pong = keys.data(SYSTEM, "pong")
+        await fabric.wait_matched(pong, timeout=30)
+        ready()
+        while True:
+            sample = await sub.get()
+            await fabric.publish(pong, sample.payload)
+
+
 async def tcp(role: str, addr: str, n: int) -> None:
     host, port = addr.rsplit(":", 1)
     reader, writer = await asyncio.open_connection(host, int(port))
@@ -132,6 +144,8 @@ def main() -> None:
     transport, role, addr, n = sys.argv[1], sys.argv[2], sys.argv[3], int(sys.argv[4])
     if transport in ("sdk", "sdk-indirect"):
         coro = sdk(role, addr, n, direct=transport == "sdk")
+    elif transport == "fabric":
+        coro = fabric_only(addr)
     elif transport in ("zenoh", "zenoh-callback"):
         coro = raw(role, addr, n, via_queue=transport == "zenoh")
     else:

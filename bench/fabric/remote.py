@@ -103,6 +103,27 @@ async def sdk_latency(size: int, iters: int, warm: int, *, direct: bool = True) 
     return samples
 
 
+async def fabric_latency(size: int, iters: int, warm: int) -> list[int]:
+    """The fabric alone on both sides (no envelope, no node runtime): splits the SDK's
+    cost between transport plumbing and the node layer."""
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    samples: list[int] = []
+    async with ZenohFabric(ZenohConfig(listen=[ep])) as fabric:
+        sub = fabric.subscribe(keys.data(SYSTEM, "pong"), InboxPolicy(capacity=16))
+        ping = keys.data(SYSTEM, "ping")
+        async with peer("fabric", "echo", ep):
+            await fabric.wait_matched(ping, timeout=PEER_TIMEOUT)
+            payload = b"x" * size
+            for i in range(warm + iters):
+                t0 = time.perf_counter_ns()
+                await fabric.publish(ping, payload)
+                await sub.get()
+                t1 = time.perf_counter_ns()
+                if i >= warm:
+                    samples.append(t1 - t0)
+    return samples
+
+
 async def sdk_throughput(size: int, n: int) -> dict[str, Any]:
     ep = f"tcp/127.0.0.1:{free_port()}"
     async with ZenohFabric(ZenohConfig(listen=[ep])) as fabric:

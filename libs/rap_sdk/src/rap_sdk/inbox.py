@@ -80,6 +80,19 @@ class Inbox(Generic[T]):
         self._accepted(len(items))
         return True
 
+    def put_nowait(self, item: T) -> bool:
+        """Add without waiting when the policy allows it now. False only when the item
+        must wait for room (FIFO with ``block``, full): then ``await put(item)``."""
+        policy = self.policy
+        if (
+            policy.block
+            and policy.overflow is Overflow.FIFO
+            and (len(self._items) >= policy.capacity)
+        ):
+            return False
+        self.offer(item)
+        return True
+
     async def put(self, item: T, *, timeout: float | None = None) -> bool:
         """Add, waiting for room when the policy is FIFO with ``block``.
 

@@ -145,7 +145,8 @@ class MemoryFabric:
         self._life.check_open()
         sample = Sample(key, payload)
         for sub in self._router.matching(key):
-            await sub.inbox.put(sample, timeout=timeout)
+            if not sub.inbox.put_nowait(sample):
+                await sub.inbox.put(sample, timeout=timeout)
         remote: Sample | None = None
         for member in self.bus.members:
             if member is self:

@@ -185,7 +185,9 @@ class ZenohFabric:
     async def publish(self, key: str, payload: bytes, *, timeout: float | None = None) -> None:
         self._life.check_open()
         for sub in self._router.matching(key):
-            await sub.inbox.put(Sample(key, payload), timeout=timeout)
+            sample = Sample(key, payload)
+            if not sub.inbox.put_nowait(sample):
+                await sub.inbox.put(sample, timeout=timeout)
         pub = self._publishers.get(key)
         if pub is None:
             pub = self._declare_publisher(key)
