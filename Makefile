@@ -44,7 +44,7 @@ bench-fabric: setup
 	$(RUN) python -m bench.fabric
 
 demo: setup
-	@echo "make demo: the lidar-occlusion loop is not built yet; the workspace is installed and `make test` runs the SDK suite."
+	@echo "make demo: the lidar-occlusion loop is not built yet; the workspace is installed, and 'make test' runs the SDK suite."
 
 clean:
 	rm -rf .venv .pytest_cache .mypy_cache .ruff_cache out
