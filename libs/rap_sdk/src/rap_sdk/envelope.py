@@ -9,9 +9,9 @@ duplicates while counting gaps and reordering per sender and key.
 from __future__ import annotations
 
 import os
-import random
 import struct
 import time
+from dataclasses import dataclass
 from typing import Final, Protocol
 
 import msgspec
@@ -22,6 +22,7 @@ from .errors import RejectedSample
 __all__ = ["Clock", "Opener", "Sealer", "SenderStats", "SystemClock", "new_uid"]
 
 _VARIANT: Final = 0b10 << 62
+_MASK62: Final = (1 << 62) - 1
 _PACK = struct.Struct(">QQ").pack
 
 
@@ -37,14 +38,16 @@ class SystemClock:
 
 
 class _UidSource:
-    """UUIDv7: 48-bit ms timestamp, version 7, 12-bit sub-ms counter, variant, 62 random
-    bits. Random bits come from a per-process generator seeded from the OS (uniqueness,
-    not secrecy, is what a message id needs)."""
+    """UUIDv7 (RFC 9562): 48-bit ms timestamp, version 7, a 12-bit sub-ms counter in
+    rand_a, the variant, and in rand_b 62 bits that start at a random value from the OS
+    and count up per message: unique within the process by the counter, across
+    processes by the random start (uniqueness, not secrecy, is what a message id needs).
+    """
 
-    __slots__ = ("_counter", "_hi", "_last_ms", "_rand")
+    __slots__ = ("_counter", "_hi", "_last_ms", "_low")
 
     def __init__(self) -> None:
-        self._rand = random.Random(os.urandom(16)).getrandbits
+        self._low = int.from_bytes(os.urandom(8)) & _MASK62
         self._last_ms = -1
         self._counter = 0
         self._hi = 0
@@ -57,7 +60,8 @@ class _UidSource:
             self._last_ms = ms
             self._counter = 0
             self._hi = (ms & 0xFFFF_FFFF_FFFF) << 16 | 0x7 << 12
-        return _PACK(self._hi | self._counter, _VARIANT | self._rand(62))
+        self._low = (self._low + 1) & _MASK62
+        return _PACK(self._hi | self._counter, _VARIANT | self._low)
 
 
 new_uid = _UidSource()
@@ -101,7 +105,8 @@ class Sealer:
         return _encode(env), env
 
 
-class SenderStats(msgspec.Struct):
+@dataclass(slots=True)
+class SenderStats:
     duplicates: int = 0
     missing: int = 0
     """Samples skipped in a sender's sequence and not (yet) seen late."""

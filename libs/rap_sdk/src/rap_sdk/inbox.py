@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import enum
 from collections import deque
+from dataclasses import dataclass
 from typing import Generic, TypeVar
 
 import msgspec
@@ -40,7 +41,8 @@ class InboxPolicy(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
             raise ValueError(f"inbox capacity must be >= 1, got {self.capacity}")
 
 
-class InboxStats(msgspec.Struct):
+@dataclass(slots=True)
+class InboxStats:
     accepted: int = 0
     dropped: int = 0
     high_water: int = 0

@@ -15,6 +15,7 @@ import logging
 import signal
 from collections.abc import AsyncIterator, Callable, Sequence
 from contextlib import asynccontextmanager
+from dataclasses import dataclass
 from typing import Any
 
 import anyio
@@ -36,7 +37,8 @@ _NIL = _encode(None)
 REJECTION_INTERVAL_NS = 1_000_000_000
 
 
-class NodeStats(msgspec.Struct):
+@dataclass(slots=True)
+class NodeStats:
     received: int = 0
     handled: int = 0
     failed: int = 0
