@@ -268,7 +268,7 @@ def main() -> int:
     r = ratios(m)
     v = verdicts(r)
     data = {"hardware": hw, "quick": args.quick, "measurements": m, "ratios": r, "budgets": v}
-    path = write_json("fabric", data)
+    path = write_json("fabric.quick" if args.quick else "fabric", data)
     if not args.quick:
         write_section("fabric", render(m, r, v, hw))
     print(render(m, r, v, hw))

@@ -21,8 +21,6 @@ from rap_sdk import Context, InboxPolicy, Node, Overflow, ZenohFabric, run_nodes
 
 from .common import RAW_BLAST, RAW_PING, RAW_PONG, SYSTEM, Blob, raw_session, sdk_config
 
-TRACE = os.environ.get("BENCH_TRACE", "1") == "1"
-
 
 def ready() -> None:
     print("READY", flush=True)
@@ -53,7 +51,7 @@ async def sdk(role: str, addr: str, n: int, direct: bool) -> None:
                 finished.set()
 
     async with ZenohFabric(sdk_config(addr, direct=direct)) as fabric:
-        async with run_nodes(fabric, [node], system=SYSTEM, trace=TRACE):
+        async with run_nodes(fabric, [node], system=SYSTEM):
             if role == "echo":  # the client listens for pongs before we say READY
                 await fabric.wait_matched(keys.data(SYSTEM, "pong"), timeout=30)
             ready()

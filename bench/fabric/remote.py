@@ -86,9 +86,7 @@ async def sdk_latency(size: int, iters: int, warm: int, *, direct: bool = True) 
     samples: list[int] = []
     loop = asyncio.get_running_loop()
     async with ZenohFabric(ZenohConfig(listen=[ep], direct_callbacks=direct)) as fabric:
-        async with run_nodes(
-            fabric, [client], system=SYSTEM, trace=os.environ.get("BENCH_TRACE", "1") == "1"
-        ) as group:
+        async with run_nodes(fabric, [client], system=SYSTEM) as group:
             transport = "sdk" if direct else "sdk-indirect"
             async with peer(transport, "echo", ep):
                 await fabric.wait_matched(keys.data(SYSTEM, "ping"), timeout=PEER_TIMEOUT)

@@ -92,14 +92,14 @@ async def test_a_cycle_flows_with_cycle_and_cause(setup: dict[str, Any]) -> None
         assert anomaly.decode(LidarMask).occluded == [False, True]
         assert seen == [("monitor", 42), ("analyse", "monitor")]
         # each end record is published after what its handler emitted
-        ends: set[str] = set()
-        await h.wait_for(
-            lambda r: (
-                r.kind is keys.Kind.TRACE
-                and r.decode(StageTrace).phase == "end"
-                and (ends.add(r.name) or ends == {"monitor", "analyse"})
+        for node in ("monitor", "analyse"):
+            await h.wait_for(
+                lambda r, node=node: (
+                    r.kind is keys.Kind.TRACE  # type: ignore[misc]
+                    and r.name == node
+                    and r.decode(StageTrace).phase == "end"
+                )
             )
-        )
         mon, ana = h.traces("monitor"), h.traces("analyse")
         # per node in order; across nodes the order is causal (trigger uids), since
         # records from two senders may reach the harness in either order

@@ -30,10 +30,8 @@ class Message(msgspec.Struct, frozen=True, kw_only=True):
             )
 
 
-def type_name(cls: type[msgspec.Struct] | type[None]) -> str:
-    """The wire name of a message class (``rap.Empty/1`` for ``None``)."""
-    if cls is type(None) or cls is None:
-        return "rap.Empty/1"
+def type_name(cls: type[msgspec.Struct]) -> str:
+    """The wire name of a message class."""
     name = getattr(cls, "TYPE", "")
     if not name:
         raise TypeError(

@@ -98,7 +98,6 @@ class Harness:
         self._bus = MemoryBus()
         self._port = 0
         self._arrived: anyio.Event | None = None
-        self._groups: list[NodeGroup] = []
 
     @property
     def fabric(self) -> Fabric:
@@ -164,7 +163,6 @@ class Harness:
             group = await self._stack.enter_async_context(
                 run_nodes(self.fabric, nodes, system=self.system, trace=self.trace)
             )
-            self._groups.append(group)
             return group
         runtimes = []
         for node in nodes:
@@ -172,7 +170,6 @@ class Harness:
             group = await self._stack.enter_async_context(
                 run_nodes(fabric, [node], system=self.system, trace=self.trace)
             )
-            self._groups.append(group)
             runtimes += group.runtimes
         # Readiness by liveliness: a node declares its token after its subscriptions and
         # peers do not forward declarations, so a session that sees a node's token is

@@ -3,8 +3,10 @@ queryable task hosting, and the lifecycle."""
 
 from __future__ import annotations
 
+import contextlib
 import logging
 from collections.abc import AsyncIterator, Callable
+from types import TracebackType
 from typing import Generic, Self, TypeVar
 
 import anyio
@@ -12,7 +14,7 @@ from anyio.abc import TaskGroup
 
 from ..errors import LifecycleError, QueryError
 from ..inbox import Inbox, InboxPolicy, InboxStats
-from ..keyexpr import intersects, validate
+from ..keyexpr import intersects
 from ._types import LivelinessChange, QueryHandler, QueryRequest, Reply, Sample
 
 log = logging.getLogger(__name__)
@@ -98,8 +100,17 @@ class Router:
             self._cache[key] = hit
         return hit
 
-    def all(self) -> list[LocalSubscription]:
-        return list(self._subs)
+    async def deliver(self, key: str, payload: bytes, timeout: float | None) -> None:
+        """Hand a locally published sample to this process's subscribers (FIFO inboxes
+        with ``block`` make the publisher wait for room)."""
+        for sub in self.matching(key):
+            sample = Sample(key, payload)
+            if not sub.inbox.put_nowait(sample):
+                await sub.inbox.put(sample, timeout=timeout)
+
+    def close_all(self) -> None:
+        for sub in list(self._subs):
+            sub.close()
 
 
 class Lifecycle:
@@ -110,6 +121,7 @@ class Lifecycle:
         self._what = what
         self._state = "new"
         self._tg: TaskGroup | None = None
+        self._stack: contextlib.AsyncExitStack | None = None
 
     @property
     def is_open(self) -> bool:
@@ -121,15 +133,25 @@ class Lifecycle:
         if self._state == "closed":
             raise LifecycleError(f"{self._what} is closed; open a new one")
 
-    def opening(self, tg: TaskGroup) -> None:
+    async def open(self) -> None:
+        """Enter the open state with a task group of its own."""
         if self._state != "new":
             raise LifecycleError(f"{self._what} can be opened once; it is {self._state}")
-        self._tg = tg
+        stack = contextlib.AsyncExitStack()
+        self._tg = await stack.enter_async_context(anyio.create_task_group())
+        self._stack = stack
         self._state = "open"
 
-    def closing(self) -> None:
+    async def close(
+        self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        """Cancel what the task group still runs and enter the closed state."""
+        assert self._tg is not None
+        assert self._stack is not None
+        self._tg.cancel_scope.cancel()
         self._state = "closed"
-        self._tg = None
+        stack, self._stack, self._tg = self._stack, None, None
+        await stack.__aexit__(et, ev, tb)
 
     @property
     def task_group(self) -> TaskGroup:
@@ -168,5 +190,4 @@ __all__ = [
     "Router",
     "answer",
     "liveliness_stream",
-    "validate",
 ]

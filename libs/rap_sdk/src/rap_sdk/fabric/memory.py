@@ -8,7 +8,6 @@ immediate and in order, within the publishing call, so tests need no sleeps.
 
 from __future__ import annotations
 
-import contextlib
 import itertools
 from types import TracebackType
 
@@ -26,7 +25,7 @@ from ._local import (
     answer,
     liveliness_stream,
 )
-from ._types import LivelinessChange, QueryHandler, Reply, Sample
+from ._types import LivelinessChange, QueryHandler, QueryRequest, Reply, Sample
 
 __all__ = ["MemoryBus", "MemoryFabric"]
 
@@ -107,17 +106,13 @@ class MemoryFabric:
         self._queryables: list[_MemQueryable] = []
         self._watches: list[InboxStream[LivelinessChange]] = []
         self._handler_timeout = query_handler_timeout
-        self._stack: contextlib.AsyncExitStack | None = None
 
     @property
     def id(self) -> str:
         return self._id
 
     async def __aenter__(self) -> MemoryFabric:
-        stack = contextlib.AsyncExitStack()
-        tg = await stack.enter_async_context(anyio.create_task_group())
-        self._life.opening(tg)
-        self._stack = stack
+        await self._life.open()
         self.bus.members.append(self)
         return self
 
@@ -130,23 +125,15 @@ class MemoryFabric:
             tok.undeclare()
         for q in list(self._queryables):
             q.undeclare()
-        for sub in self._router.all():
-            sub.close()
+        self._router.close_all()
         for w in list(self._watches):
             w.close()
         self.bus.members.remove(self)
-        tg = self._life.task_group
-        tg.cancel_scope.cancel()
-        self._life.closing()
-        assert self._stack is not None
-        await self._stack.__aexit__(et, ev, tb)
+        await self._life.close(et, ev, tb)
 
     async def publish(self, key: str, payload: bytes, *, timeout: float | None = None) -> None:
         self._life.check_open()
-        sample = Sample(key, payload)
-        for sub in self._router.matching(key):
-            if not sub.inbox.put_nowait(sample):
-                await sub.inbox.put(sample, timeout=timeout)
+        await self._router.deliver(key, payload, timeout)
         remote: Sample | None = None
         for member in self.bus.members:
             if member is self:
@@ -216,8 +203,6 @@ class MemoryFabric:
         *,
         timeout: float = 2.0,
     ) -> list[Reply]:
-        from ._types import QueryRequest
-
         self._life.check_open()
         key, _, params = selector.partition("?")
         validate(key)

@@ -112,7 +112,6 @@ class ZenohFabric:
         lookup instead of a query into Zenoh)."""
         self._handles: set[_Handle] = set()
         self._watches: list[InboxStream[LivelinessChange]] = []
-        self._stack: contextlib.AsyncExitStack | None = None
         self._id = ""
         cc = zenoh.CongestionControl
         self._cc = cc.BLOCK if self.config.congestion_control == "block" else cc.DROP
@@ -141,13 +140,10 @@ class ZenohFabric:
                 f"cannot open a Zenoh session (listen={self.config.listen}, "
                 f"connect={self.config.connect}): {exc}"
             ) from None
-        stack = contextlib.AsyncExitStack()
-        tg = await stack.enter_async_context(anyio.create_task_group())
+        await self._life.open()
         self._session = session
         self._id = str(session.info.zid())
         self._handoff = LoopHandoff(asyncio.get_running_loop())
-        self._stack = stack
-        self._life.opening(tg)
         return self
 
     async def __aexit__(
@@ -157,8 +153,7 @@ class ZenohFabric:
             return
         for h in list(self._handles):
             h.undeclare()
-        for sub in self._router.all():
-            sub.close()
+        self._router.close_all()
         for w in list(self._watches):
             w.close()
         for entity in [*self._listeners.values(), *self._publishers.values()]:
@@ -166,11 +161,8 @@ class ZenohFabric:
                 entity.undeclare()
         self._listeners.clear()
         self._publishers.clear()
-        self._life.task_group.cancel_scope.cancel()
-        self._life.closing()
-        assert self._stack is not None
         try:
-            await self._stack.__aexit__(et, ev, tb)
+            await self._life.close(et, ev, tb)
         finally:
             session, self._session = self._session, None
             if session is not None:
@@ -184,10 +176,7 @@ class ZenohFabric:
 
     async def publish(self, key: str, payload: bytes, *, timeout: float | None = None) -> None:
         self._life.check_open()
-        for sub in self._router.matching(key):
-            sample = Sample(key, payload)
-            if not sub.inbox.put_nowait(sample):
-                await sub.inbox.put(sample, timeout=timeout)
+        await self._router.deliver(key, payload, timeout)
         pub = self._publishers.get(key)
         if pub is None:
             pub = self._declare_publisher(key)
