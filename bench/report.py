@@ -4,6 +4,7 @@ sections of docs/benchmarks.md (each benchmark owns the text between its markers
 from __future__ import annotations
 
 import json
+import math
 import os
 import platform
 import re
@@ -20,11 +21,12 @@ DOC = ROOT / "docs" / "benchmarks.md"
 
 
 def pct(values: Sequence[float], q: float) -> float:
-    """The q-quantile (0..1) by nearest rank."""
+    """The q-quantile (0..1) by nearest rank: the smallest value with at least a
+    fraction q of the samples at or below it."""
     if not values:
         raise ValueError("no samples")
     s = sorted(values)
-    return s[min(len(s) - 1, max(0, round(q * (len(s) - 1))))]
+    return s[max(0, math.ceil(q * len(s)) - 1)]
 
 
 def summary_us(ns: Sequence[int]) -> dict[str, float]:

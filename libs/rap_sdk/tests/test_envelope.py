@@ -94,3 +94,25 @@ def test_sequences_are_tracked_per_key() -> None:
 def test_bad_envelopes_are_rejected_with_a_reason(payload: bytes, reason: str) -> None:
     with pytest.raises(RejectedSample, match=reason):
         Opener().open("rap/s/data/x", payload)
+
+
+def test_a_very_old_sample_is_dropped_not_taken_for_a_restart() -> None:
+    s = Sealer("src", FixedClock())
+    p = [sealed(s) for _ in range(100)]
+    o = Opener()
+    for payload in p:
+        assert o.open("rap/s/data/x", payload) is not None
+    assert o.open("rap/s/data/x", p[10]) is None  # a stale copy: older ts, far back
+    assert o.open("rap/s/data/x", p[50]) is None  # and a replay within the window
+    assert (o.stats.stale, o.stats.duplicates, o.stats.restarts) == (1, 1, 0)
+    assert o.stats.missing == 0
+
+
+def test_samples_from_before_a_late_join_do_not_make_missing_negative() -> None:
+    s = Sealer("src", FixedClock())
+    p = [sealed(s) for _ in range(6)]
+    o = Opener()
+    assert o.open("rap/s/data/x", p[5]) is not None  # joined late, at seq 5
+    assert o.open("rap/s/data/x", p[3]) is not None  # an earlier one arrives after
+    assert o.open("rap/s/data/x", p[3]) is None
+    assert (o.stats.missing, o.stats.reordered, o.stats.duplicates) == (0, 1, 1)

@@ -15,6 +15,7 @@ import pytest
 from anyio import wait_all_tasks_blocked
 from rap_sdk import (
     BackpressureTimeout,
+    FabricError,
     InboxPolicy,
     LifecycleError,
     LivelinessChange,
@@ -244,16 +245,19 @@ async def test_fifo_drop_counts_what_it_drops(pair: tuple[Any, Any]) -> None:
     a, b = pair
     local = a.subscribe("rap/s/event/e", InboxPolicy(capacity=2, block=False))
     remote = b.subscribe("rap/s/event/e", InboxPolicy(capacity=2, block=True))
-    observer = b.subscribe("rap/s/event/e", InboxPolicy(capacity=100))
+    sentinel = b.subscribe("rap/s/event/end")
     await a.wait_matched("rap/s/event/e")
+    await a.wait_matched("rap/s/event/end")
     for i in range(5):
         await a.publish("rap/s/event/e", bytes([i]))
-    assert [(await get(observer)).payload[0] for _ in range(5)] == list(range(5))
+    await a.publish("rap/s/event/end", b"")
+    await get(sentinel)  # samples of one sender arrive in order: all five came before
     assert [(await get(local)).payload[0] for _ in range(2)] == [0, 1]
     assert local.stats.dropped == 3
     # a remote sender never waits: into a full FIFO inbox the sample is dropped, counted
-    assert (await get(remote)).payload[0] == 0
-    assert remote.stats.dropped + remote.stats.accepted == 5
+    assert remote.stats.dropped == 3
+    assert len(remote.inbox) == 2
+    assert [(await get(remote)).payload[0] for _ in range(2)] == [0, 1]
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -266,6 +270,12 @@ async def test_misuse_is_refused_with_the_fix(kind: str) -> None:
             fabric.subscribe("rap/s/da*ta")
         with pytest.raises(ValueError, match="empty chunk"):
             fabric.subscribe("rap//s")
+        everything = fabric.subscribe("rap/**")
+        with pytest.raises(FabricError, match="cannot publish on a wildcard expression"):
+            await fabric.publish("rap/s/*/x", b"")
+        with pytest.raises(ValueError, match="empty chunk"):
+            await fabric.publish("rap/s//x", b"")
+        assert len(everything.inbox) == 0, "a refused publish reached a local subscriber"
     with pytest.raises(LifecycleError, match="is closed"):
         await fabric.publish("rap/s/data/x", b"")
 
@@ -295,3 +305,25 @@ async def test_clean_shutdown_leaks_no_task_or_thread(kind: str) -> None:
 
 async def _reply() -> list[Reply]:
     return [Reply("rap/s/kb/x", b"ok")]
+
+
+@pytest.mark.zenoh
+async def test_publishers_beyond_the_cap_evict_the_oldest(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from rap_sdk.fabric import zenoh_fabric
+
+    monkeypatch.setattr(zenoh_fabric, "MAX_PUBLISHERS", 3)
+    port = free_port()
+    async with (
+        ZenohFabric(ZenohConfig(listen=[f"tcp/127.0.0.1:{port}"])) as a,
+        ZenohFabric(ZenohConfig(listen=[], connect=[f"tcp/127.0.0.1:{port}"])) as b,
+    ):
+        sub = b.subscribe("rap/s/data/**", InboxPolicy(capacity=100))
+        for i in range(5):
+            await a.wait_matched(f"rap/s/data/k{i}")
+        assert list(a._pubs) == ["rap/s/data/k2", "rap/s/data/k3", "rap/s/data/k4"]
+        for i in range(5):  # evicted keys are declared again on use, and still arrive
+            await a.wait_matched(f"rap/s/data/k{i}")
+            await a.publish(f"rap/s/data/k{i}", bytes([i]))
+        assert sorted([(await get(sub)).payload[0] for _ in range(5)]) == list(range(5))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import logging
 from collections.abc import Sequence
 
@@ -26,7 +27,11 @@ def run(
 ) -> None:
     """Run ``nodes`` in this process until SIGTERM/SIGINT: the one Zenoh session of the
     process (or an in-process MemoryFabric with ``memory=True``), graceful stop."""
-    logging.getLogger(__name__).info("starting %d node(s) on system %r", len(nodes), system)
+    log = logging.getLogger(__name__)
+    log.info("starting %d node(s) on system %r", len(nodes), system)
+    if use_uvloop and importlib.util.find_spec("uvloop") is None:
+        log.info("uvloop is not installed; running on the standard asyncio loop")
+        use_uvloop = False
     if not memory:
         zenoh.try_init_log_from_env()
 

@@ -112,7 +112,10 @@ class SenderStats:
     """Samples skipped in a sender's sequence and not (yet) seen late."""
     reordered: int = 0
     restarts: int = 0
-    """A sender's sequence jumped far back: taken as a restart of that sender."""
+    """A lower seq with a newer ts: the sender restarted and its seq began again."""
+    stale: int = 0
+    """Samples older than the 64-sample window (and not newer in ts): dropped, since
+    they cannot be told from a replay."""
 
 
 _WINDOW: Final = 64
@@ -145,33 +148,42 @@ class Opener:
         return env if self._track(env.source, key, env.seq, env.ts) else None
 
     def _track(self, source: str, key: str, seq: int, ts: int) -> bool:
-        """Within one sender instance seq and ts grow together, so a lower seq with a
+        """Within one sender instance seq and ts grow together. A lower seq with a
         *newer* ts than the highest seen means the sender restarted (its seq began
-        again); a lower seq with an older ts is late (reordered) or a duplicate."""
+        again); a lower seq with an older ts is late (reordered) or a duplicate.
+
+        State per stream: highest seq, a bitmap of the 64 seqs below it (1 = seen), the
+        highest seq's ts, and the first seq seen (samples before it were never counted
+        missing, so a late one does not reduce ``missing``)."""
         st = self._streams.get((source, key))
         if st is None:
             if len(self._streams) >= 65536:
                 self._streams.clear()
-            self._streams[(source, key)] = [seq, 1, ts]
+            self._streams[(source, key)] = [seq, 1, ts, seq]
             return True
-        hi, mask, hi_ts = st
+        hi, mask, hi_ts, base = st
+        stats = self.stats
         if seq > hi:
             d = seq - hi
             if d > 1:
-                self.stats.missing += d - 1
+                stats.missing += d - 1
             st[0], st[2] = seq, ts
             st[1] = ((mask << d) | 1) & _FULL if d < _WINDOW else 1
             return True
-        back = hi - seq
-        if ts > hi_ts or back >= _WINDOW:
-            self.stats.restarts += 1
-            st[0], st[1], st[2] = seq, 1, ts
+        if ts > hi_ts:
+            stats.restarts += 1
+            st[0], st[1], st[2], st[3] = seq, 1, ts, seq
             return True
+        back = hi - seq
+        if back >= _WINDOW:
+            stats.stale += 1  # too old to tell from a replay: dropped
+            return False
         bit = 1 << back
         if mask & bit:
-            self.stats.duplicates += 1
+            stats.duplicates += 1
             return False
         st[1] = mask | bit
-        self.stats.reordered += 1
-        self.stats.missing -= 1
+        stats.reordered += 1
+        if seq > base:
+            stats.missing -= 1
         return True

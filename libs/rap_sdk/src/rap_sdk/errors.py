@@ -1,4 +1,7 @@
-"""The errors of rap_sdk. Every error the SDK raises is a :class:`RapError`::
+"""The errors of rap_sdk. The SDK's own failures are :class:`RapError`; Zenoh's errors
+are wrapped into :class:`FabricError`. Arguments that are malformed raise ``ValueError``
+subclasses at the call: an invalid key (``rap_schemas.keys.KeyError_``, or
+``rap_sdk.keyexpr.KeyExprError`` for an expression) or an invalid ``InboxPolicy``::
 
     RapError
     ├── LifecycleError        an object used in the wrong state (not open, closed, running)

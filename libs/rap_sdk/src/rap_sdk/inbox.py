@@ -39,6 +39,14 @@ class InboxPolicy(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     def __post_init__(self) -> None:
         if self.capacity < 1:
             raise ValueError(f"inbox capacity must be >= 1, got {self.capacity}")
+        # a plain string (InboxPolicy(overflow="fifo")) becomes the enum, or is refused
+        try:
+            msgspec.structs.force_setattr(self, "overflow", Overflow(self.overflow))
+        except ValueError:
+            raise ValueError(
+                f"inbox overflow must be one of {[o.value for o in Overflow]}, "
+                f"got {self.overflow!r}"
+            ) from None
 
 
 @dataclass(slots=True)
@@ -103,16 +111,24 @@ class Inbox(Generic[T]):
         policy = self.policy
         if not (policy.overflow is Overflow.FIFO and policy.block):
             return self.offer(item)
+        loop = asyncio.get_running_loop()
+        deadline = None if timeout is None else loop.time() + timeout
         while len(self._items) >= policy.capacity and not self._closed:
-            fut = asyncio.get_running_loop().create_future()
+            fut = loop.create_future()
             self._putters.append(fut)
+            left = None if deadline is None else max(0.0, deadline - loop.time())
             try:
-                await asyncio.wait_for(fut, timeout)
+                await asyncio.wait_for(fut, left)
             except TimeoutError:
                 raise BackpressureTimeout(
                     f"inbox full ({policy.capacity} items) for {timeout} s; the consumer "
                     "is too slow: raise its capacity or speed up its handler"
                 ) from None
+            except BaseException:
+                # woken but cancelled before taking the room: hand the wake-up on
+                if fut.done() and not fut.cancelled():
+                    self._wake_putter()
+                raise
             finally:
                 if fut in self._putters:
                     self._putters.remove(fut)

@@ -24,7 +24,7 @@ from anyio.abc import TaskStatus
 from rap_schemas import Envelope, Message, Rejection, StageTrace, keys, type_name
 
 from .envelope import Clock, Opener, Sealer, SenderStats, SystemClock
-from .errors import LifecycleError, RejectedSample
+from .errors import LifecycleError, RapError, RejectedSample
 from .fabric import Fabric, Sample, Subscription
 from .node import Node, Route
 
@@ -35,6 +35,8 @@ log = logging.getLogger(__name__)
 _encode = msgspec.msgpack.Encoder().encode
 _NIL = _encode(None)
 REJECTION_INTERVAL_NS = 1_000_000_000
+RECORD_TIMEOUT = 1.0
+"""Seconds a trace or rejection record may wait for room in a local inbox."""
 
 
 @dataclass(slots=True)
@@ -44,6 +46,8 @@ class NodeStats:
     failed: int = 0
     rejected: int = 0
     sent: int = 0
+    records_lost: int = 0
+    """Trace or rejection records that could not be published."""
 
 
 class Context:
@@ -193,7 +197,24 @@ class NodeRuntime:
         payload, _ = self.sealer.seal(
             self._trace_key, StageTrace.TYPE, _encode(rec), cycle=cycle, cause=env.uid
         )
-        await self.fabric.publish(self._trace_key, payload)
+        await self._publish_record(self._trace_key, payload)
+
+    async def _publish_record(self, key: str, payload: bytes) -> None:
+        """Publish a trace or rejection record. A record that cannot go out (fabric
+        closing or failing, a subscriber's inbox full past the deadline) is counted in
+        ``stats.records_lost`` and logged; it never stops the node nor hangs shutdown."""
+        try:
+            await self.fabric.publish(key, payload, timeout=RECORD_TIMEOUT)
+        except RapError as exc:
+            self.stats.records_lost += 1
+            if self.stats.records_lost == 1 or self.stats.records_lost % 1000 == 0:
+                log.warning(
+                    "node %s: %d record(s) on %s could not be published: %s",
+                    self.node.name,
+                    self.stats.records_lost,
+                    key,
+                    exc,
+                )
 
     # -- receiving ---------------------------------------------------------------------
 
@@ -218,10 +239,7 @@ class NodeRuntime:
             type=env.type if env else "",
         )
         payload, _ = self.sealer.seal(self._log_key, Rejection.TYPE, _encode(rec))
-        try:
-            await self.fabric.publish(self._log_key, payload)
-        except LifecycleError:
-            pass  # fabric closing: the counter and the log line stand
+        await self._publish_record(self._log_key, payload)
 
     async def _flush_rejections(self) -> None:
         for key, rl in self._rejections.items():
@@ -312,6 +330,8 @@ class NodeRuntime:
                 token = self.fabric.declare_token(keys.alive(self.system, self.node.name))
                 task_status.started()
                 await self._stopping.wait()
+                for sub in self._subs:  # stop() may have come before they existed
+                    sub.close()
                 # consumers now drain what their closed inboxes still hold, then end
         finally:
             with anyio.CancelScope(shield=True):

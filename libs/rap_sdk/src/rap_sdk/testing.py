@@ -16,6 +16,8 @@ crosses the remote path.
 from __future__ import annotations
 
 import contextlib
+import os
+import shutil
 import socket
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -33,12 +35,31 @@ from .inbox import InboxPolicy, Overflow
 from .node import Node
 from .runtime import NodeGroup, run_nodes
 
-__all__ = ["Harness", "Record", "free_port"]
+__all__ = ["REQUIRE_SERVICES", "Harness", "Record", "free_port", "require_binary"]
+
+REQUIRE_SERVICES = "RAP_REQUIRE_SERVICES"
+"""Set to 1 (CI does) and a test whose server is missing fails instead of skipping."""
 
 M = TypeVar("M", bound=Message)
 
 _encode = msgspec.msgpack.Encoder().encode
 _open = msgspec.msgpack.Decoder(Envelope).decode
+
+
+def require_binary(name: str, *, hint: str = "") -> str:
+    """The path of a server binary a test starts itself (redis-server, mosquitto, ...).
+
+    When it is missing the test is skipped, or fails when ``RAP_REQUIRE_SERVICES=1``
+    (as in CI), so that a missing server never hides behind a skip there."""
+    import pytest  # only tests call this; pytest is a development dependency
+
+    path = shutil.which(name)
+    if path is not None:
+        return path
+    message = f"{name} is not installed{': ' + hint if hint else ''}"
+    if os.environ.get(REQUIRE_SERVICES) == "1":
+        pytest.fail(f"{message} ({REQUIRE_SERVICES}=1: servers are required here)")
+    pytest.skip(message)
 
 
 def free_port() -> int:
@@ -52,7 +73,8 @@ def free_port() -> int:
 @dataclass(frozen=True, slots=True)
 class Record:
     key: str
-    kind: keys.Kind
+    kind: keys.Kind | None
+    """None for a key outside the RAP key space (recorded all the same)."""
     name: str
     envelope: Envelope | None
     """None when the payload was not a valid envelope."""
@@ -145,12 +167,16 @@ class Harness:
 
     async def _record(self, sub: Any) -> None:
         async for sample in sub:
-            parsed = keys.parse(sample.key)
+            try:
+                parsed = keys.parse(sample.key)
+                kind, name = parsed.kind, parsed.name
+            except keys.KeyError_:
+                kind, name = None, ""
             try:
                 env: Envelope | None = _open(sample.payload)
             except (msgspec.ValidationError, msgspec.DecodeError):
                 env = None
-            self.records.append(Record(sample.key, parsed.kind, parsed.name, env))
+            self.records.append(Record(sample.key, kind, name, env))
             if self._arrived is not None:
                 self._arrived.set()
                 self._arrived = None

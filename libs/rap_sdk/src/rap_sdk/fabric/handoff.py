@@ -44,6 +44,7 @@ class LoopHandoff:
             except RuntimeError:  # loop closed: the process is shutting down
                 self.lost += len(self._q)
                 self._q.clear()
+                self._scheduled = False  # later items are counted the same way
 
     def _drain(self) -> None:
         self._scheduled = False

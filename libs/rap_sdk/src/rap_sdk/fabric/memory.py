@@ -106,6 +106,8 @@ class MemoryFabric:
         self._queryables: list[_MemQueryable] = []
         self._watches: list[InboxStream[LivelinessChange]] = []
         self._handler_timeout = query_handler_timeout
+        self._published: set[str] = set()
+        """Keys already validated by publish()."""
 
     @property
     def id(self) -> str:
@@ -133,6 +135,15 @@ class MemoryFabric:
 
     async def publish(self, key: str, payload: bytes, *, timeout: float | None = None) -> None:
         self._life.check_open()
+        if key not in self._published:
+            validate(key)
+            if "*" in key:
+                raise FabricError(
+                    f"cannot publish on a wildcard expression {key!r}; use a "
+                    "concrete key built by rap_schemas.keys"
+                )
+            if len(self._published) < 4096:
+                self._published.add(key)
         await self._router.deliver(key, payload, timeout)
         remote: Sample | None = None
         for member in self.bus.members:

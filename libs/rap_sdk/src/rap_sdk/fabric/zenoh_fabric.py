@@ -9,6 +9,11 @@ subscribers with ``allowed_origin=REMOTE``), so each subscriber gets each sample
 Zenoh callbacks run on Zenoh threads: they copy the payload and hand it to the loop
 through :class:`~rap_sdk.fabric.handoff.LoopHandoff`; they never block and never call
 Zenoh. Replies to queries are sent from the loop.
+
+Zenoh's own calls (``put``, ``reply``) run on the loop thread and return at once, except
+with ``congestion_control="block"`` while the link's send queue is full: then ``put``
+waits for room, stalling the loop as backpressure (nothing is lost). Choose ``"drop"``
+for streams where losing a sample is better than waiting.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ import asyncio
 import contextlib
 import json
 import logging
+from collections.abc import Iterator
 from types import TracebackType
 from typing import Any, Literal
 
@@ -51,8 +57,8 @@ class ZenohConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_on
     connect: list[str] = []
     multicast_scouting: bool = False
     congestion_control: Literal["block", "drop"] = "block"
-    """``block``: a full network queue makes ``publish`` wait (nothing is lost);
-    ``drop``: the sample is dropped (for high-rate sensor data)."""
+    """``block``: a full network send queue makes ``publish`` wait for room, on the loop
+    thread (nothing is lost); ``drop``: the sample is dropped (high-rate sensor data)."""
     direct_callbacks: bool = True
     """Run transport callbacks on Zenoh's own thread (they only copy and hand off);
     ``False`` adds Zenoh's extra Python thread hop (measured in bench/fabric)."""
@@ -75,6 +81,42 @@ def _matching(entity: Any) -> bool:
     """A publisher's or querier's matching status. (The stubs type ``matching_status``
     as bool; at run time it is a MatchingStatus whose ``matching`` says it.)"""
     return bool(entity.matching_status.matching)
+
+
+@contextlib.contextmanager
+def _zenoh_errors(what: str) -> Iterator[None]:
+    try:
+        yield
+    except zenoh.ZError as exc:
+        raise FabricError(f"{what} failed: {exc}") from None
+
+
+MAX_PUBLISHERS = 1024
+
+
+class _Pub:
+    """A declared publisher and whether a remote subscriber matches it. A matching
+    listener keeps ``matching`` current with a plain store on Zenoh's thread, so reading
+    it costs an attribute lookup instead of a query into Zenoh. An evicted cell is only
+    dropped: a late callback writes into it harmlessly."""
+
+    __slots__ = ("listener", "matching", "pub", "waiters")
+
+    def __init__(self, pub: zenoh.Publisher) -> None:
+        self.pub = pub
+        self.listener: Any = None
+        self.matching = False
+        self.waiters: list[anyio.Event] = []
+
+    def wake(self) -> None:
+        for event in self.waiters:
+            event.set()
+
+    def undeclare(self) -> None:
+        for entity in (self.listener, self.pub):
+            if entity is not None:
+                with contextlib.suppress(zenoh.ZError):
+                    entity.undeclare()
 
 
 class _Handle:
@@ -103,13 +145,7 @@ class ZenohFabric:
         self._router = Router()
         self._session: zenoh.Session | None = None
         self._handoff: LoopHandoff | None = None
-        self._publishers: dict[str, zenoh.Publisher] = {}
-        self._listeners: dict[str, Any] = {}
-        self._remote_match: dict[str, bool] = {}
-        self._match_waiters: dict[str, list[anyio.Event]] = {}
-        """Per publisher key: whether a remote subscriber matches, kept current by a
-        matching listener (a bool store on Zenoh's thread; reading it costs a dict
-        lookup instead of a query into Zenoh)."""
+        self._pubs: dict[str, _Pub] = {}
         self._handles: set[_Handle] = set()
         self._watches: list[InboxStream[LivelinessChange]] = []
         self._id = ""
@@ -128,6 +164,11 @@ class ZenohFabric:
         assert self._session is not None
         return self._session
 
+    @property
+    def _push(self) -> Any:
+        assert self._handoff is not None
+        return self._handoff.push
+
     async def __aenter__(self) -> ZenohFabric:
         try:
             zconf = zenoh.Config.from_json5(self.config.to_json5())
@@ -140,7 +181,12 @@ class ZenohFabric:
                 f"cannot open a Zenoh session (listen={self.config.listen}, "
                 f"connect={self.config.connect}): {exc}"
             ) from None
-        await self._life.open()
+        try:
+            await self._life.open()
+        except BaseException:
+            with anyio.CancelScope(shield=True):
+                await anyio.to_thread.run_sync(session.close)
+            raise
         self._session = session
         self._id = str(session.info.zid())
         self._handoff = LoopHandoff(asyncio.get_running_loop())
@@ -156,11 +202,9 @@ class ZenohFabric:
         self._router.close_all()
         for w in list(self._watches):
             w.close()
-        for entity in [*self._listeners.values(), *self._publishers.values()]:
-            with contextlib.suppress(zenoh.ZError):
-                entity.undeclare()
-        self._listeners.clear()
-        self._publishers.clear()
+        for cell in self._pubs.values():
+            cell.undeclare()
+        self._pubs.clear()
         try:
             await self._life.close(et, ev, tb)
         finally:
@@ -176,51 +220,53 @@ class ZenohFabric:
 
     async def publish(self, key: str, payload: bytes, *, timeout: float | None = None) -> None:
         self._life.check_open()
+        cell = self._pubs.get(key) or self._declare_publisher(key)  # validates the key
         await self._router.deliver(key, payload, timeout)
-        pub = self._publishers.get(key)
-        if pub is None:
-            pub = self._declare_publisher(key)
         # The matching flag flips on Zenoh's thread when a remote subscriber's
         # declaration reaches this session, i.e. when Zenoh's own routing would start
         # sending it samples: skipping the put before then loses nothing Zenoh delivers.
-        if self._remote_match[key]:
-            pub.put(payload)
+        if cell.matching:
+            try:
+                cell.pub.put(payload)
+            except zenoh.ZError as exc:
+                raise FabricError(f"publish on {key!r} failed: {exc}") from None
 
-    def _declare_publisher(self, key: str) -> zenoh.Publisher:
+    def _declare_publisher(self, key: str) -> _Pub:
         validate(key)
         if "*" in key:
             raise FabricError(
                 f"cannot publish on a wildcard expression {key!r}; use a "
                 "concrete key built by rap_schemas.keys"
             )
-        if len(self._publishers) >= 1024:
-            old_key, old = self._publishers.popitem()
-            self._listeners.pop(old_key).undeclare()
-            self._remote_match.pop(old_key, None)
-            old.undeclare()
-        pub = self.session.declare_publisher(
-            key, congestion_control=self._cc, allowed_destination=zenoh.Locality.REMOTE
-        )
-        matches, waiters = self._remote_match, self._match_waiters
-        push = self._handoff.push  # type: ignore[union-attr]
+        if len(self._pubs) >= MAX_PUBLISHERS:
+            # evict the least recently declared publisher that nobody waits on
+            old = next((k for k, c in self._pubs.items() if not c.waiters), None)
+            if old is not None:
+                self._pubs.pop(old).undeclare()
+        with _zenoh_errors(f"declaring a publisher on {key!r}"):
+            cell = _Pub(
+                self.session.declare_publisher(
+                    key, congestion_control=self._cc, allowed_destination=zenoh.Locality.REMOTE
+                )
+            )
+            push = self._push
 
-        def on_status(status: zenoh.MatchingStatus) -> None:
-            matches[key] = status.matching  # set before waking: a woken waiter sees it
-            if status.matching and key in waiters:
-                push(self._wake_matched, key)
+            def on_status(status: zenoh.MatchingStatus) -> None:
+                cell.matching = status.matching  # set before waking: a woken waiter sees it
+                if status.matching and cell.waiters:
+                    push(_Pub.wake, cell)
 
-        self._listeners[key] = pub.declare_matching_listener(self._callback(on_status))
-        matches.setdefault(key, _matching(pub))
-        self._publishers[key] = pub
-        return pub
+            cell.listener = cell.pub.declare_matching_listener(self._callback(on_status))
+            if _matching(cell.pub):
+                cell.matching = True
+        self._pubs[key] = cell
+        return cell
 
     def has_subscribers(self, key: str) -> bool:
         self._life.check_open()
         if self._router.matching(key):
             return True
-        if key not in self._publishers:
-            self._declare_publisher(key)
-        return self._remote_match[key]
+        return (self._pubs.get(key) or self._declare_publisher(key)).matching
 
     def subscribe(self, key_expr: str, policy: InboxPolicy | None = None) -> LocalSubscription:
         self._life.check_open()
@@ -235,14 +281,15 @@ class ZenohFabric:
 
         sub = LocalSubscription(key_expr, policy or DEFAULT_POLICY, closed)
         deliver = sub.inbox.offer
-        push = self._handoff.push  # type: ignore[union-attr]
+        push = self._push
 
         def on_sample(s: zenoh.Sample) -> None:
             push(deliver, Sample(str(s.key_expr), s.payload.to_bytes(), True))
 
-        sub.remote_handle = self.session.declare_subscriber(
-            key_expr, self._callback(on_sample), allowed_origin=zenoh.Locality.REMOTE
-        )
+        with _zenoh_errors(f"subscribing to {key_expr!r}"):
+            sub.remote_handle = self.session.declare_subscriber(
+                key_expr, self._callback(on_sample), allowed_origin=zenoh.Locality.REMOTE
+            )
         self._router.add(sub)
         return sub
 
@@ -259,51 +306,47 @@ class ZenohFabric:
             "and connected (check listen/connect)?"
         )
         if queryable:
-            ready = anyio.Event()
-            push = self._handoff.push  # type: ignore[union-attr]
-            querier = self.session.declare_querier(key)
-
-            def on_status(status: zenoh.MatchingStatus) -> None:
-                if status.matching:
-                    push(lambda _: ready.set(), None)
-
-            listener = querier.declare_matching_listener(self._callback(on_status))
-            try:
-                if not _matching(querier):
-                    with anyio.fail_after(timeout):
-                        await ready.wait()
-            except TimeoutError:
-                raise fail from None
-            finally:
-                listener.undeclare()
-                querier.undeclare()
+            await self._wait_queryable(key, timeout, fail)
             return
-        # subscribers: the same flag that publish() consults, so a publish right after
-        # this returns is sent
-        if key not in self._publishers:
-            self._declare_publisher(key)
-        waiters = self._match_waiters.setdefault(key, [])
+        # subscribers: the same flag that publish() consults, so a publish made right
+        # after this returns is sent
+        cell = self._pubs.get(key) or self._declare_publisher(key)
         mine = anyio.Event()
-        waiters.append(mine)
+        cell.waiters.append(mine)
         try:
             with anyio.fail_after(timeout):
-                while not self._remote_match[key]:
+                while not cell.matching:
                     await mine.wait()
-                    if not self._remote_match[key]:  # flipped back: wait for the next
-                        waiters.remove(mine)
+                    if not cell.matching:  # flipped back: wait for the next change
+                        cell.waiters.remove(mine)
                         mine = anyio.Event()
-                        waiters.append(mine)
+                        cell.waiters.append(mine)
         except TimeoutError:
             raise fail from None
         finally:
-            if mine in waiters:
-                waiters.remove(mine)
-            if not waiters and self._match_waiters.get(key) is waiters:
-                del self._match_waiters[key]
+            if mine in cell.waiters:
+                cell.waiters.remove(mine)
 
-    def _wake_matched(self, key: str) -> None:
-        for event in self._match_waiters.get(key, ()):
-            event.set()
+    async def _wait_queryable(self, key: str, timeout: float, fail: FabricError) -> None:
+        ready = anyio.Event()
+        push = self._push
+        with _zenoh_errors(f"declaring a querier on {key!r}"):
+            querier = self.session.declare_querier(key)
+
+        def on_status(status: zenoh.MatchingStatus) -> None:
+            if status.matching:
+                push(lambda _: ready.set(), None)
+
+        listener = querier.declare_matching_listener(self._callback(on_status))
+        try:
+            if not _matching(querier):
+                with anyio.fail_after(timeout):
+                    await ready.wait()
+        except TimeoutError:
+            raise fail from None
+        finally:
+            listener.undeclare()
+            querier.undeclare()
 
     # -- query/reply -------------------------------------------------------------------
 
@@ -311,7 +354,7 @@ class ZenohFabric:
         self._life.check_open()
         validate(key_expr)
         tg = self._life.task_group
-        push = self._handoff.push  # type: ignore[union-attr]
+        push = self._push
         timeout = self.config.query_handler_timeout
 
         async def run(query: zenoh.Query) -> None:
@@ -329,12 +372,16 @@ class ZenohFabric:
                 query.drop()
 
         def start(query: zenoh.Query) -> None:
+            if not self._life.is_open:  # arrived while closing: finalise, do not answer
+                query.drop()
+                return
             tg.start_soon(run, query)
 
         def on_query(query: zenoh.Query) -> None:
             push(start, query)
 
-        q = self.session.declare_queryable(key_expr, self._callback(on_query))
+        with _zenoh_errors(f"serving {key_expr!r}"):
+            q = self.session.declare_queryable(key_expr, self._callback(on_query))
         return _Handle(key_expr, q, self._handles)
 
     async def query(
@@ -349,7 +396,7 @@ class ZenohFabric:
         loop = asyncio.get_running_loop()
         done: asyncio.Future[None] = loop.create_future()
         replies: list[Reply] = []
-        push = self._handoff.push  # type: ignore[union-attr]
+        push = self._push
 
         def on_reply(reply: zenoh.Reply) -> None:
             if reply.ok is not None:
@@ -364,9 +411,13 @@ class ZenohFabric:
         def on_drop() -> None:
             push(finish, None)
 
-        self.session.get(
-            selector, self._callback(on_reply, on_drop), payload=payload or None, timeout=timeout
-        )
+        with _zenoh_errors(f"query {selector!r}"):
+            self.session.get(
+                selector,
+                self._callback(on_reply, on_drop),
+                payload=payload or None,
+                timeout=timeout,
+            )
         try:
             with anyio.fail_after(timeout + 1.0):
                 await done
@@ -381,7 +432,8 @@ class ZenohFabric:
         validate(key)
         if "*" in key:
             raise LifecycleError(f"a liveliness token needs a concrete key, got {key!r}")
-        tok = self.session.liveliness().declare_token(key)
+        with _zenoh_errors(f"declaring a liveliness token on {key!r}"):
+            tok = self.session.liveliness().declare_token(key)
         return _Handle(key, tok, self._handles)
 
     def watch_liveliness(
@@ -403,16 +455,17 @@ class ZenohFabric:
 
         stream = liveliness_stream(capacity, closed)
         deliver = stream.inbox.offer
-        push = self._handoff.push  # type: ignore[union-attr]
+        push = self._push
         put_kind = zenoh.SampleKind.PUT
 
         def on_change(s: zenoh.Sample) -> None:
             push(deliver, LivelinessChange(str(s.key_expr), s.kind == put_kind))
 
-        handle.append(
-            self.session.liveliness().declare_subscriber(
-                key_expr, self._callback(on_change), history=True
+        with _zenoh_errors(f"watching liveliness of {key_expr!r}"):
+            handle.append(
+                self.session.liveliness().declare_subscriber(
+                    key_expr, self._callback(on_change), history=True
+                )
             )
-        )
         self._watches.append(stream)
         return stream
