@@ -116,3 +116,25 @@ def test_samples_from_before_a_late_join_do_not_make_missing_negative() -> None:
     assert o.open("rap/s/data/x", p[3]) is not None  # an earlier one arrives after
     assert o.open("rap/s/data/x", p[3]) is None
     assert (o.stats.missing, o.stats.reordered, o.stats.duplicates) == (0, 1, 1)
+
+
+def test_a_message_sealed_in_one_pass_is_an_envelope_on_the_wire() -> None:
+    from rap_schemas import SpinCommand, SpinPlan
+
+    plan = SpinPlan(commands=[SpinCommand(omega=1.0, duration=0.5)], period=8.0)
+    payload, sent = Sealer("planner", FixedClock()).seal_message(
+        "rap/s/event/new-plan", plan, cycle=b"c" * 16, cause=b"k" * 16, ctx={"mask": 3}
+    )
+    env = msgspec.msgpack.decode(payload, type=Envelope)
+    assert (env.uid, env.ts, env.source, env.seq, env.type) == (
+        sent.uid,
+        sent.ts,
+        "planner",
+        0,
+        SpinPlan.TYPE,
+    )
+    assert (env.cycle, env.cause, env.ctx) == (b"c" * 16, b"k" * 16, {"mask": 3})
+    assert msgspec.msgpack.decode(env.body, type=SpinPlan) == plan
+    empty, _ = Sealer("x").seal_message("rap/s/event/e", None)
+    back = msgspec.msgpack.decode(empty, type=Envelope)
+    assert (back.type, msgspec.msgpack.decode(back.body)) == ("rap.Empty/1", None)

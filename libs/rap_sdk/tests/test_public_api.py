@@ -27,6 +27,7 @@ SDK = {
     "NodeRuntime",
     "NodeStats",
     "Opener",
+    "OutgoingEnvelope",
     "Overflow",
     "QueryError",
     "QueryRequest",

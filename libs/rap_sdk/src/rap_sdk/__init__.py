@@ -6,7 +6,7 @@ Declare MAPLE-K nodes with :class:`Node`, run them on a :class:`Fabric` with
 """
 
 from .app import run
-from .envelope import Clock, Opener, Sealer, SenderStats, SystemClock
+from .envelope import Clock, Opener, OutgoingEnvelope, Sealer, SenderStats, SystemClock
 from .errors import (
     BackpressureTimeout,
     ConfigError,
@@ -50,6 +50,7 @@ __all__ = [
     "NodeRuntime",
     "NodeStats",
     "Opener",
+    "OutgoingEnvelope",
     "Overflow",
     "QueryError",
     "QueryRequest",

@@ -12,14 +12,22 @@ import os
 import struct
 import time
 from dataclasses import dataclass
-from typing import Final, Protocol
+from typing import Any, Final, Protocol
 
 import msgspec
-from rap_schemas import Envelope
+from rap_schemas import Envelope, Message
 
 from .errors import RejectedSample
 
-__all__ = ["Clock", "Opener", "Sealer", "SenderStats", "SystemClock", "new_uid"]
+__all__ = [
+    "Clock",
+    "Opener",
+    "OutgoingEnvelope",
+    "Sealer",
+    "SenderStats",
+    "SystemClock",
+    "new_uid",
+]
 
 _VARIANT: Final = 0b10 << 62
 _MASK62: Final = (1 << 62) - 1
@@ -65,18 +73,63 @@ class _UidSource:
 
 
 new_uid = _UidSource()
+_EMPTY: Final = "rap.Empty/1"
+
+
+class OutgoingEnvelope(msgspec.Struct, frozen=True, kw_only=True, omit_defaults=True):
+    """What a sender builds: the :class:`~rap_schemas.Envelope` fields in the same order,
+    with ``body`` still the message object, so that envelope and body are encoded in one
+    pass. On the wire it is an ``Envelope``."""
+
+    uid: bytes
+    ts: int
+    source: str
+    seq: int
+    type: str
+    body: Any
+    cycle: bytes | None = None
+    cause: bytes | None = None
+    ctx: dict[str, int] = {}
+
+
 _encode = msgspec.msgpack.Encoder().encode
 
 
 class Sealer:
     """Builds outgoing envelopes for one sender."""
 
-    __slots__ = ("_clock", "_seq", "source")
+    __slots__ = ("_now", "_seq", "source")
 
     def __init__(self, source: str, clock: Clock | None = None) -> None:
         self.source = source
-        self._clock: Clock = clock or SystemClock()
+        self._now = (clock or SystemClock()).time_ns
         self._seq: dict[str, int] = {}
+
+    def seal_message(
+        self,
+        key: str,
+        message: Message | None,
+        *,
+        cycle: bytes | None = None,
+        cause: bytes | None = None,
+        ctx: dict[str, int] | None = None,
+    ) -> tuple[bytes, OutgoingEnvelope]:
+        """Seal a typed message: envelope and body are encoded in one pass."""
+        seq = self._seq.get(key, 0)
+        self._seq[key] = seq + 1
+        ts = self._now()
+        env = OutgoingEnvelope(
+            uid=new_uid(ts),
+            ts=ts,
+            source=self.source,
+            seq=seq,
+            type=_EMPTY if message is None else message.TYPE,
+            body=message,
+            cycle=cycle,
+            cause=cause,
+            ctx=ctx or {},
+        )
+        return _encode(env), env
 
     def seal(
         self,
@@ -90,7 +143,7 @@ class Sealer:
     ) -> tuple[bytes, Envelope]:
         seq = self._seq.get(key, 0)
         self._seq[key] = seq + 1
-        ts = self._clock.time_ns()
+        ts = self._now()
         env = Envelope(
             uid=new_uid(ts),
             ts=ts,

@@ -21,9 +21,9 @@ from typing import Any
 import anyio
 import msgspec
 from anyio.abc import TaskStatus
-from rap_schemas import Envelope, Message, Rejection, StageTrace, keys, type_name
+from rap_schemas import Envelope, Message, Rejection, StageTrace, keys
 
-from .envelope import Clock, Opener, Sealer, SenderStats, SystemClock
+from .envelope import Clock, Opener, OutgoingEnvelope, Sealer, SenderStats, SystemClock
 from .errors import LifecycleError, RapError, RejectedSample
 from .fabric import Fabric, Sample, Subscription
 from .node import Node, Route
@@ -32,8 +32,6 @@ __all__ = ["Context", "NodeGroup", "NodeRuntime", "NodeStats", "run_nodes"]
 
 log = logging.getLogger(__name__)
 
-_encode = msgspec.msgpack.Encoder().encode
-_NIL = _encode(None)
 REJECTION_INTERVAL_NS = 1_000_000_000
 RECORD_TIMEOUT = 1.0
 """Seconds a trace or rejection record may wait for room in a local inbox."""
@@ -74,13 +72,13 @@ class Context:
     def config(self) -> Any:
         return self._rt.node.config
 
-    async def emit(self, name: str, message: Message | None = None) -> Envelope:
+    async def emit(self, name: str, message: Message | None = None) -> OutgoingEnvelope:
         """Emit event ``name`` in this cycle, caused by the triggering envelope."""
         rt = self._rt
         key = rt.event_keys.get(name) or rt.build_key(keys.event, name, rt.event_keys)
         return await rt.send(key, message, cycle=self.cycle, cause=self.envelope.uid)
 
-    async def publish(self, topic: str, message: Message) -> Envelope:
+    async def publish(self, topic: str, message: Message) -> OutgoingEnvelope:
         """Publish on data topic ``topic`` in this cycle."""
         rt = self._rt
         key = rt.data_keys.get(topic) or rt.build_key(keys.data, topic, rt.data_keys)
@@ -161,11 +159,9 @@ class NodeRuntime:
         cycle: bytes | None = None,
         cause: bytes | None = None,
         ctx: dict[str, int] | None = None,
-    ) -> Envelope:
+    ) -> OutgoingEnvelope:
         """Seal and publish ``message`` on ``key`` (a full key from rap_schemas.keys)."""
-        body = _NIL if message is None else _encode(message)
-        tname = "rap.Empty/1" if message is None else type_name(type(message))
-        payload, env = self.sealer.seal(key, tname, body, cycle=cycle, cause=cause, ctx=ctx)
+        payload, env = self.sealer.seal_message(key, message, cycle=cycle, cause=cause, ctx=ctx)
         await self.fabric.publish(key, payload)
         self.stats.sent += 1
         return env
@@ -194,9 +190,7 @@ class NodeRuntime:
             ok=not error,
             error=error,
         )
-        payload, _ = self.sealer.seal(
-            self._trace_key, StageTrace.TYPE, _encode(rec), cycle=cycle, cause=env.uid
-        )
+        payload, _ = self.sealer.seal_message(self._trace_key, rec, cycle=cycle, cause=env.uid)
         await self._publish_record(self._trace_key, payload)
 
     async def _publish_record(self, key: str, payload: bytes) -> None:
@@ -238,7 +232,7 @@ class NodeRuntime:
             source=env.source if env else "",
             type=env.type if env else "",
         )
-        payload, _ = self.sealer.seal(self._log_key, Rejection.TYPE, _encode(rec))
+        payload, _ = self.sealer.seal_message(self._log_key, rec)
         await self._publish_record(self._log_key, payload)
 
     async def _flush_rejections(self) -> None:
@@ -343,7 +337,7 @@ class NodeRuntime:
             self._state = "stopped"
 
     async def _consume(self, route: Route, sub: Subscription) -> None:
-        get, handle = sub.get, self.handle
+        get, handle = sub.inbox.get, self.handle  # type: ignore[attr-defined]
         while True:
             try:
                 sample = await get()

@@ -26,9 +26,9 @@ from typing import Any, Literal, TypeVar
 
 import anyio
 import msgspec
-from rap_schemas import Envelope, Message, Rejection, StageTrace, keys, type_name
+from rap_schemas import Envelope, Message, Rejection, StageTrace, keys
 
-from .envelope import Sealer
+from .envelope import OutgoingEnvelope, Sealer
 from .errors import LifecycleError
 from .fabric import Fabric, MemoryBus, MemoryFabric, ZenohConfig, ZenohFabric
 from .inbox import InboxPolicy, Overflow
@@ -42,7 +42,6 @@ REQUIRE_SERVICES = "RAP_REQUIRE_SERVICES"
 
 M = TypeVar("M", bound=Message)
 
-_encode = msgspec.msgpack.Encoder().encode
 _open = msgspec.msgpack.Decoder(Envelope).decode
 
 
@@ -219,18 +218,16 @@ class Harness:
         cycle: bytes | None = None,
         cause: bytes | None = None,
         ctx: dict[str, int] | None = None,
-    ) -> Envelope:
-        body = _encode(message)
-        tname = type_name(type(message)) if message is not None else "rap.Empty/1"
-        payload, env = self.sealer.seal(key, tname, body, cycle=cycle, cause=cause, ctx=ctx)
+    ) -> OutgoingEnvelope:
+        payload, env = self.sealer.seal_message(key, message, cycle=cycle, cause=cause, ctx=ctx)
         await self.fabric.publish(key, payload)
         return env
 
-    async def publish(self, topic: str, message: Message) -> Envelope:
+    async def publish(self, topic: str, message: Message) -> OutgoingEnvelope:
         """Publish as the managed system on ``rap/<system>/data/<topic>``."""
         return await self.send(keys.data(self.system, topic), message)
 
-    async def emit(self, name: str, message: Message | None = None, **kw: Any) -> Envelope:
+    async def emit(self, name: str, message: Message | None = None, **kw: Any) -> OutgoingEnvelope:
         return await self.send(keys.event(self.system, name), message, **kw)
 
     async def publish_raw(self, key: str, payload: bytes) -> None:

@@ -100,10 +100,14 @@ class Router:
             self._cache[key] = hit
         return hit
 
-    async def deliver(self, key: str, payload: bytes, timeout: float | None) -> None:
-        """Hand a locally published sample to this process's subscribers (FIFO inboxes
-        with ``block`` make the publisher wait for room)."""
-        for sub in self.matching(key):
+    @staticmethod
+    async def deliver(
+        subs: tuple[LocalSubscription, ...], key: str, payload: bytes, timeout: float | None
+    ) -> None:
+        """Hand a locally published sample to this process's matching subscribers
+        (``subs``, from :meth:`matching`; FIFO inboxes with ``block`` make the publisher
+        wait for room). Callers skip the call when ``subs`` is empty."""
+        for sub in subs:
             sample = Sample(key, payload)
             if not sub.inbox.put_nowait(sample):
                 await sub.inbox.put(sample, timeout=timeout)

@@ -144,7 +144,9 @@ class MemoryFabric:
                 )
             if len(self._published) < 4096:
                 self._published.add(key)
-        await self._router.deliver(key, payload, timeout)
+        subs = self._router.matching(key)
+        if subs:
+            await self._router.deliver(subs, key, payload, timeout)
         remote: Sample | None = None
         for member in self.bus.members:
             if member is self:

@@ -221,7 +221,9 @@ class ZenohFabric:
     async def publish(self, key: str, payload: bytes, *, timeout: float | None = None) -> None:
         self._life.check_open()
         cell = self._pubs.get(key) or self._declare_publisher(key)  # validates the key
-        await self._router.deliver(key, payload, timeout)
+        subs = self._router.matching(key)
+        if subs:
+            await self._router.deliver(subs, key, payload, timeout)
         # The matching flag flips on Zenoh's thread when a remote subscriber's
         # declaration reaches this session, i.e. when Zenoh's own routing would start
         # sending it samples: skipping the put before then loses nothing Zenoh delivers.
