@@ -377,3 +377,18 @@ async def test_the_harness_records_keys_outside_the_key_space() -> None:
         rec = await h.wait_for(lambda r: r.kind is None)
         assert (rec.key, rec.name, rec.envelope) == ("rap/t/unknown-kind/x", "", None)
         await h.expect_event("after")
+
+
+async def test_a_rejection_names_the_sender_and_type_when_it_can() -> None:
+    node = Node("n")
+
+    @node.on_data("scan")
+    async def on_scan(ctx: Context, s: LaserScan) -> None: ...
+
+    async with Harness(system="t") as h:
+        await h.start(node)
+        await h.send(keys.data("t", "scan"), Twist(linear=0.0, angular=1.0))
+        rec = await h.expect(keys.Kind.LOG, "n")
+        rejection = rec.decode(Rejection)
+        assert (rejection.source, rejection.type) == ("harness", Twist.TYPE)
+        assert "expected type rap.LaserScan/1" in rejection.reason

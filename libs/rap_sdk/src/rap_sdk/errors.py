@@ -52,9 +52,13 @@ class BackpressureTimeout(FabricError):
 class RejectedSample(RapError):
     """A sample cannot be accepted; ``reason`` is fit for a rejection record."""
 
-    def __init__(self, reason: str) -> None:
+    def __init__(self, reason: str, *, source: str = "", type: str = "") -> None:
         super().__init__(reason)
         self.reason = reason
+        self.source = source
+        """The sender, when the envelope could be read."""
+        self.type = type
+        """The wire type, when the envelope could be read."""
 
 
 class HandlerError(RapError):

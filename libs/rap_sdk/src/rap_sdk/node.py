@@ -25,6 +25,7 @@ from typing import Any, Literal, TypeVar
 import msgspec
 from rap_schemas import Message, Stage, keys
 
+from .envelope import TypedEnvelope, typed_decoder
 from .errors import ConfigError, HandlerError
 from .inbox import InboxPolicy, Overflow
 
@@ -45,7 +46,8 @@ class Route:
     fn: Callable[..., Awaitable[None]]
     msg_type: type[Message] | None
     """None: the handler takes no message; the body is not decoded."""
-    decode: Callable[[bytes], Any] | None
+    decode: Callable[[bytes], TypedEnvelope[Any]]
+    """Envelope and body in one pass (body left raw when ``msg_type`` is None)."""
     policy: InboxPolicy
 
     @property
@@ -122,8 +124,7 @@ class Node:
         def register(fn: F) -> F:
             where = f"node {self.name!r}, {kind} {name!r}"
             msg_type = _message_type(fn, where)
-            decode = msgspec.msgpack.Decoder(msg_type).decode if msg_type else None
-            self.routes.append(Route(kind, name, fn, msg_type, decode, policy))
+            self.routes.append(Route(kind, name, fn, msg_type, typed_decoder(msg_type), policy))
             return fn
 
         return register

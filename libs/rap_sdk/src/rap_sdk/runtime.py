@@ -19,11 +19,18 @@ from dataclasses import dataclass
 from typing import Any
 
 import anyio
-import msgspec
 from anyio.abc import TaskStatus
-from rap_schemas import Envelope, Message, Rejection, StageTrace, keys
+from rap_schemas import Message, Rejection, StageTrace, keys
 
-from .envelope import Clock, Opener, OutgoingEnvelope, Sealer, SenderStats, SystemClock
+from .envelope import (
+    Clock,
+    Opener,
+    OutgoingEnvelope,
+    Sealer,
+    SenderStats,
+    SystemClock,
+    TypedEnvelope,
+)
 from .errors import LifecycleError, RapError, RejectedSample
 from .fabric import Fabric, Sample, Subscription
 from .node import Node, Route
@@ -53,7 +60,9 @@ class Context:
 
     __slots__ = ("_rt", "cycle", "envelope", "key", "message")
 
-    def __init__(self, rt: NodeRuntime, key: str, envelope: Envelope, message: Any) -> None:
+    def __init__(
+        self, rt: NodeRuntime, key: str, envelope: TypedEnvelope[Any], message: Any
+    ) -> None:
         self._rt = rt
         self.key = key
         self.envelope = envelope
@@ -171,7 +180,7 @@ class NodeRuntime:
         route: Route,
         phase: str,
         key: str,
-        env: Envelope,
+        env: TypedEnvelope[Any],
         cycle: bytes,
         ts: int,
         duration: int = 0,
@@ -212,7 +221,7 @@ class NodeRuntime:
 
     # -- receiving ---------------------------------------------------------------------
 
-    async def _reject(self, key: str, reason: str, env: Envelope | None = None) -> None:
+    async def _reject(self, key: str, reason: str, source: str = "", type_: str = "") -> None:
         self.stats.rejected += 1
         rl = self._rejections.get(key)
         if rl is None:
@@ -229,8 +238,8 @@ class NodeRuntime:
             reason=reason,
             ts=now,
             count=count,
-            source=env.source if env else "",
-            type=env.type if env else "",
+            source=source,
+            type=type_,
         )
         payload, _ = self.sealer.seal_message(self._log_key, rec)
         await self._publish_record(self._log_key, payload)
@@ -246,27 +255,17 @@ class NodeRuntime:
     async def handle(self, route: Route, sample: Sample) -> None:
         """Open, check, decode and dispatch one sample to ``route``'s handler."""
         self.stats.received += 1
+        msg_type = route.msg_type
         try:
-            env = self.opener.open(sample.key, sample.payload)
+            env = self.opener.open_typed(
+                sample.key, sample.payload, route.decode, msg_type.TYPE if msg_type else None
+            )
         except RejectedSample as exc:
-            await self._reject(sample.key, exc.reason)
+            await self._reject(sample.key, exc.reason, exc.source, exc.type)
             return
         if env is None:
             return  # duplicate, counted by the opener
-        message: Any = None
-        if route.decode is not None:
-            assert route.msg_type is not None
-            if env.type != route.msg_type.TYPE:
-                await self._reject(
-                    sample.key, f"expected type {route.msg_type.TYPE}, got {env.type!r}", env
-                )
-                return
-            try:
-                message = route.decode(env.body)
-            except (msgspec.ValidationError, msgspec.DecodeError) as exc:
-                await self._reject(sample.key, f"invalid {env.type} body: {exc}", env)
-                return
-        ctx = Context(self, sample.key, env, message)
+        ctx = Context(self, sample.key, env, env.body if msg_type is not None else None)
         if self._lock is None:
             await self._call(route, ctx)
         else:
