@@ -23,7 +23,7 @@ from ..report import (
 from . import local, remote
 
 SIZES = (64, 4096)
-ROUNDS = 5
+ROUNDS = 7
 BUDGETS = {"sdk_vs_raw_zenoh_p50": 1.3, "inproc_vs_queue_p50": 3.0}
 
 
@@ -44,7 +44,7 @@ def hop_us(rtt: dict[str, float]) -> dict[str, float]:
 
 
 def measure(quick: bool) -> dict[str, Any]:
-    iters, warm = (300, 50) if quick else (3000, 300)
+    iters, warm = (350, 50) if quick else (3500, 300)
     tput_n = {64: 5000 if quick else 50000, 4096: 2000 if quick else 20000}
     out: dict[str, Any] = {"latency": {}, "throughput": {}, "inproc": {}, "handoff": {}}
 
@@ -193,7 +193,7 @@ def render(m: dict[str, Any], r: dict[str, Any], v: dict[str, Any], hw: dict[str
         "the Zenoh callback to the loop (call_soon_threadsafe) and through an asyncio.Queue "
         "to a coroutine, on both sides. The floor row handles the sample in the loop "
         "callback itself and never reaches coroutine code; every async handler costs at "
-        "least one loop turn more than that. † Paths run interleaved in 5 rounds; a ratio is "
+        "least one loop turn more than that. † Paths run interleaved in 7 rounds; a ratio is "
         "the median over rounds of the two p50s measured back to back (the machine's drift "
         "between runs is larger than the differences measured); p50/p99 pool all rounds.",
         "",

@@ -327,3 +327,22 @@ async def test_publishers_beyond_the_cap_evict_the_oldest(
             await a.wait_matched(f"rap/s/data/k{i}")
             await a.publish(f"rap/s/data/k{i}", bytes([i]))
         assert sorted([(await get(sub)).payload[0] for _ in range(5)]) == list(range(5))
+
+
+async def test_prepare_runs_before_the_consumer_or_leaves_none(pair: tuple[Any, Any]) -> None:
+    import msgspec
+
+    a, b = pair
+    decode = msgspec.msgpack.Decoder(int).decode
+    local = a.subscribe("rap/s/data/n", InboxPolicy(capacity=10), prepare=decode)
+    remote = b.subscribe("rap/s/data/n", InboxPolicy(capacity=10), prepare=decode)
+    await a.wait_matched("rap/s/data/n")
+    payloads = [msgspec.msgpack.encode(7), b"\xc1", msgspec.msgpack.encode(9)]
+    for p in payloads:
+        await a.publish("rap/s/data/n", p)
+    got_local = [await get(local) for _ in payloads]
+    assert [s.prepared for s in got_local] == [7, None, 9]  # a failed prepare leaves None
+    got_remote = [await get(remote) for _ in payloads]
+    assert [s.payload for s in got_remote] == payloads
+    # from another process it may not have finished when the loop takes the sample
+    assert all(s.prepared in (None, w) for s, w in zip(got_remote, [7, None, 9], strict=True))

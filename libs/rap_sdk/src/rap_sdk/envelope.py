@@ -219,12 +219,14 @@ class Opener:
         payload: bytes,
         decode: Callable[[bytes], TypedEnvelope[Any]],
         expected: str | None,
+        prepared: TypedEnvelope[Any] | None = None,
     ) -> TypedEnvelope[Any] | None:
-        """Decode envelope and body in one pass with ``decode``; check the wire type is
+        """Decode envelope and body in one pass with ``decode`` (or take ``prepared``,
+        the same decoding done already on the transport thread); check the wire type is
         ``expected`` (None: any). ``None`` for a duplicate; :class:`RejectedSample` with
         the reason otherwise (the slow path, taken only for bad samples, words it)."""
         try:
-            env = decode(payload)
+            env = prepared if prepared is not None else decode(payload)
         except (msgspec.ValidationError, msgspec.DecodeError) as exc:
             raw = self._diagnose(payload)  # raises when the envelope itself is bad
             who = {"source": raw.source, "type": raw.type}

@@ -258,7 +258,11 @@ class NodeRuntime:
         msg_type = route.msg_type
         try:
             env = self.opener.open_typed(
-                sample.key, sample.payload, route.decode, msg_type.TYPE if msg_type else None
+                sample.key,
+                sample.payload,
+                route.decode,
+                msg_type.TYPE if msg_type else None,
+                sample.prepared,
             )
         except RejectedSample as exc:
             await self._reject(sample.key, exc.reason, exc.source, exc.type)
@@ -315,7 +319,9 @@ class NodeRuntime:
         try:
             async with anyio.create_task_group() as tg:
                 for route in self.node.routes:
-                    sub = self.fabric.subscribe(self.route_key(route), route.policy)
+                    sub = self.fabric.subscribe(
+                        self.route_key(route), route.policy, prepare=route.decode
+                    )
                     self._subs.append(sub)
                     tg.start_soon(self._consume, route, sub)
                 # the token comes after the subscriptions: declarations on a link keep

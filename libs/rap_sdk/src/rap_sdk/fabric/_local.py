@@ -7,15 +7,16 @@ import contextlib
 import logging
 from collections.abc import AsyncIterator, Callable
 from types import TracebackType
-from typing import Generic, Self, TypeVar
+from typing import Any, Generic, Self, TypeVar
 
 import anyio
+import msgspec
 from anyio.abc import TaskGroup
 
 from ..errors import LifecycleError, QueryError
 from ..inbox import Inbox, InboxPolicy, InboxStats
 from ..keyexpr import intersects
-from ._types import LivelinessChange, QueryHandler, QueryRequest, Reply, Sample
+from ._types import LivelinessChange, Prepare, QueryHandler, QueryRequest, Reply, Sample
 
 log = logging.getLogger(__name__)
 
@@ -67,10 +68,28 @@ class LocalSubscription(InboxStream[Sample]):
         key_expr: str,
         policy: InboxPolicy,
         on_close: Callable[[InboxStream[Sample]], None],
+        prepare: Prepare | None = None,
     ) -> None:
         super().__init__(policy, on_close)
         self.key_expr = key_expr
         self.remote_handle: object | None = None
+        self.prepare = prepare
+
+    def sample(self, key: str, payload: bytes, remote: bool) -> Sample:
+        """A sample for this subscription, prepared in the calling thread."""
+        s = Sample(key, payload, remote)
+        if self.prepare is not None:
+            s.prepared = prepared(self.prepare, payload)
+        return s
+
+
+def prepared(prepare: Prepare, payload: bytes) -> Any:
+    """``prepare(payload)``, or None when it fails: the consumer then does the work
+    itself and words the rejection."""
+    try:
+        return prepare(payload)
+    except msgspec.MsgspecError:
+        return None
 
 
 class Router:
@@ -108,7 +127,7 @@ class Router:
         (``subs``, from :meth:`matching`; FIFO inboxes with ``block`` make the publisher
         wait for room). Callers skip the call when ``subs`` is empty."""
         for sub in subs:
-            sample = Sample(key, payload)
+            sample = sub.sample(key, payload, False)
             if not sub.inbox.put_nowait(sample):
                 await sub.inbox.put(sample, timeout=timeout)
 
@@ -194,4 +213,5 @@ __all__ = [
     "Router",
     "answer",
     "liveliness_stream",
+    "prepared",
 ]

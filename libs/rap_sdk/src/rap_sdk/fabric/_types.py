@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterable
 from dataclasses import dataclass
 from types import TracebackType
-from typing import Protocol, Self, runtime_checkable
+from typing import Any, Protocol, Self, runtime_checkable
 
 from ..inbox import InboxPolicy, InboxStats
 
@@ -13,6 +13,7 @@ __all__ = [
     "Fabric",
     "LivelinessChange",
     "LivelinessWatch",
+    "Prepare",
     "QueryHandler",
     "QueryRequest",
     "Queryable",
@@ -23,12 +24,15 @@ __all__ = [
 ]
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class Sample:
     key: str
     payload: bytes
     remote: bool = False
     """True when the sample came from another session (process)."""
+    prepared: Any = None
+    """What the subscription's ``prepare`` function made of the payload, when it has
+    run (on the transport thread, while the loop wakes up) and succeeded; else None."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -54,6 +58,7 @@ class LivelinessChange:
 
 
 QueryHandler = Callable[[QueryRequest], Awaitable[Iterable[Reply]]]
+Prepare = Callable[[bytes], Any]
 
 
 class Subscription(Protocol):
@@ -111,7 +116,19 @@ class Fabric(Protocol):
         """Deliver ``payload`` on ``key``. Local FIFO inboxes with ``block`` make this
         wait for room (at most ``timeout`` s)."""
 
-    def subscribe(self, key_expr: str, policy: InboxPolicy | None = None) -> Subscription: ...
+    def subscribe(
+        self,
+        key_expr: str,
+        policy: InboxPolicy | None = None,
+        *,
+        prepare: Prepare | None = None,
+    ) -> Subscription:
+        """Subscribe with a bounded inbox. ``prepare(payload)`` (a pure function such as
+        a msgspec decoder) is applied to each sample before the consumer sees it and
+        the result put in ``Sample.prepared``; for samples from other processes it runs
+        on the transport thread after the hand-off, overlapping the loop's wake-up. A
+        consumer must accept ``prepared is None`` (not run yet, or it raised) and do the
+        work itself."""
 
     def has_subscribers(self, key: str) -> bool:
         """Whether a subscriber here or elsewhere matches ``key`` now (publishers may skip

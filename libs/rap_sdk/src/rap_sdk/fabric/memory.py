@@ -25,7 +25,7 @@ from ._local import (
     answer,
     liveliness_stream,
 )
-from ._types import LivelinessChange, QueryHandler, QueryRequest, Reply, Sample
+from ._types import LivelinessChange, Prepare, QueryHandler, QueryRequest, Reply, Sample
 
 __all__ = ["MemoryBus", "MemoryFabric"]
 
@@ -147,20 +147,19 @@ class MemoryFabric:
         subs = self._router.matching(key)
         if subs:
             await self._router.deliver(subs, key, payload, timeout)
-        remote: Sample | None = None
         for member in self.bus.members:
             if member is self:
                 continue
             for sub in member._router.matching(key):
-                if remote is None:
-                    remote = Sample(key, payload, remote=True)
-                sub.inbox.offer(remote)
+                sub.inbox.offer(sub.sample(key, payload, True))
 
     def has_subscribers(self, key: str) -> bool:
         self._life.check_open()
         return any(m._router.matching(key) for m in self.bus.members)
 
-    def subscribe(self, key_expr: str, policy: InboxPolicy | None = None) -> LocalSubscription:
+    def subscribe(
+        self, key_expr: str, policy: InboxPolicy | None = None, *, prepare: Prepare | None = None
+    ) -> LocalSubscription:
         self._life.check_open()
         validate(key_expr)
 
@@ -168,7 +167,7 @@ class MemoryFabric:
             assert isinstance(s, LocalSubscription)
             self._router.remove(s)
 
-        sub = LocalSubscription(key_expr, policy or DEFAULT_POLICY, closed)
+        sub = LocalSubscription(key_expr, policy or DEFAULT_POLICY, closed, prepare)
         self._router.add(sub)
         self.bus.notify()
         return sub

@@ -41,8 +41,9 @@ from ._local import (
     Router,
     answer,
     liveliness_stream,
+    prepared,
 )
-from ._types import LivelinessChange, QueryHandler, QueryRequest, Reply, Sample
+from ._types import LivelinessChange, Prepare, QueryHandler, QueryRequest, Reply, Sample
 from .handoff import LoopHandoff
 
 __all__ = ["ZenohConfig", "ZenohFabric"]
@@ -270,7 +271,9 @@ class ZenohFabric:
             return True
         return (self._pubs.get(key) or self._declare_publisher(key)).matching
 
-    def subscribe(self, key_expr: str, policy: InboxPolicy | None = None) -> LocalSubscription:
+    def subscribe(
+        self, key_expr: str, policy: InboxPolicy | None = None, *, prepare: Prepare | None = None
+    ) -> LocalSubscription:
         self._life.check_open()
         validate(key_expr)
 
@@ -281,12 +284,17 @@ class ZenohFabric:
                 with contextlib.suppress(zenoh.ZError):
                     s.remote_handle.undeclare()  # type: ignore[attr-defined]
 
-        sub = LocalSubscription(key_expr, policy or DEFAULT_POLICY, closed)
+        sub = LocalSubscription(key_expr, policy or DEFAULT_POLICY, closed, prepare)
         deliver = sub.inbox.offer
         push = self._push
 
         def on_sample(s: zenoh.Sample) -> None:
-            push(deliver, Sample(str(s.key_expr), s.payload.to_bytes(), True))
+            payload = s.payload.to_bytes()
+            sample = Sample(str(s.key_expr), payload, True)
+            push(deliver, sample)
+            if prepare is not None:
+                # after the hand-off: this runs while the loop thread is still waking up
+                sample.prepared = prepared(prepare, payload)
 
         with _zenoh_errors(f"subscribing to {key_expr!r}"):
             sub.remote_handle = self.session.declare_subscriber(
