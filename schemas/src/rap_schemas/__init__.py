@@ -3,6 +3,22 @@
 from . import keys
 from .catalog import MESSAGES, by_type
 from .envelope import Envelope
+from .knowledge import (
+    MODELS_PREFIX,
+    KbDelete,
+    KbGet,
+    KbHistory,
+    KbList,
+    KbPut,
+    KbRecord,
+    KbReply,
+    KbRequest,
+    ModelGet,
+    ModelList,
+    ModelMeta,
+    ModelPin,
+    ModelPut,
+)
 from .lidar import (
     Empty,
     LaserScan,
@@ -20,12 +36,26 @@ from .message import Message, type_name
 
 __all__ = [
     "MESSAGES",
+    "MODELS_PREFIX",
     "Empty",
     "Envelope",
+    "KbDelete",
+    "KbGet",
+    "KbHistory",
+    "KbList",
+    "KbPut",
+    "KbRecord",
+    "KbReply",
+    "KbRequest",
     "KnowledgeAccess",
     "LaserScan",
     "LidarMask",
     "Message",
+    "ModelGet",
+    "ModelList",
+    "ModelMeta",
+    "ModelPin",
+    "ModelPut",
     "Odometry",
     "PlanProposal",
     "Pose2D",

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Final
 
+from .knowledge import KbRecord
 from .lidar import (
     Empty,
     LaserScan,
@@ -23,6 +24,7 @@ __all__ = ["MESSAGES", "by_type"]
 
 MESSAGES: Final[tuple[type[Message], ...]] = (
     Empty,
+    KbRecord,
     KnowledgeAccess,
     LaserScan,
     LidarMask,

@@ -10,6 +10,7 @@ import msgspec
 
 from .catalog import MESSAGES
 from .envelope import Envelope
+from .knowledge import KbReply, KbRequest
 
 __all__ = ["render", "write"]
 
@@ -23,7 +24,11 @@ def _file_name(type_name: str) -> str:
 def render() -> dict[str, str]:
     """File name -> JSON text, deterministic (sorted keys, trailing newline)."""
     out: dict[str, str] = {}
-    entries: list[tuple[str, Any]] = [("rap.Envelope/1", Envelope)]
+    entries: list[tuple[str, Any]] = [
+        ("rap.Envelope/1", Envelope),
+        ("rap.KbRequest/1", KbRequest),
+        ("rap.KbReply/1", KbReply),
+    ]
     entries += [(m.TYPE, m) for m in MESSAGES]
     for type_name, cls in entries:
         schema = msgspec.json.schema(cls)

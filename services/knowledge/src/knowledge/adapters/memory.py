@@ -1,0 +1,92 @@
+"""The in-memory store (the default): a dict of latest records and a bounded history."""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+
+from rap_schemas import KbRecord, ModelMeta
+from rap_sdk.keyexpr import intersects
+
+from ..core import Retention
+from ..errors import Conflict
+from ..ports import Applied
+
+__all__ = ["MemoryStore"]
+
+
+class MemoryStore:
+    def __init__(self, retention: Retention) -> None:
+        self._retention = retention
+        self._latest: dict[str, KbRecord] = {}
+        self._history: dict[str, deque[KbRecord]] = {}
+        self._models: dict[str, dict[int, tuple[ModelMeta, bytes]]] = {}
+        self._pins: dict[str, int] = {}
+
+    async def apply(self, rec: KbRecord, *, expect: int | None = None) -> Applied:
+        cur = self._latest.get(rec.key)
+        cur_version = cur.version if cur is not None else 0
+        if cur is not None and cur.version == rec.version and cur.writer == rec.writer:
+            return Applied(cur.version, True, duplicate=True)
+        if expect is not None:
+            live = cur_version if cur is not None and not cur.deleted else 0
+            if live != expect:
+                raise Conflict(rec.key, expect, live)
+        hist = self._history.get(rec.key)
+        if hist is None:
+            hist = self._history[rec.key] = deque()
+        hist.append(rec)
+        self._trim(rec.key, hist)
+        if rec.version > cur_version:
+            self._latest[rec.key] = rec
+            return Applied(rec.version, True)
+        return Applied(cur_version, False)
+
+    def _trim(self, key: str, hist: deque[KbRecord]) -> None:
+        limit = self._retention.limit(key)
+        if limit.max_count is not None:
+            while len(hist) > limit.max_count:
+                hist.popleft()
+        if limit.max_age_ns is not None:
+            oldest = time.time_ns() - limit.max_age_ns
+            while hist and hist[0].ts < oldest:
+                hist.popleft()
+
+    async def get(self, key: str) -> KbRecord | None:
+        return self._latest.get(key)
+
+    async def history(
+        self, key: str, *, since: int | None, until: int | None, limit: int
+    ) -> list[KbRecord]:
+        hist = self._history.get(key, ())
+        out = [
+            r for r in hist if (since is None or r.ts >= since) and (until is None or r.ts < until)
+        ]
+        out.sort(key=lambda r: (r.ts, r.version))
+        return out[-limit:] if limit else []
+
+    async def keys(self, pattern: str) -> list[str]:
+        return sorted(
+            k for k, r in self._latest.items() if not r.deleted and intersects(pattern, k)
+        )
+
+    async def put_model(self, meta: ModelMeta, data: bytes) -> None:
+        self._models.setdefault(meta.name, {})[meta.version] = (meta, data)
+
+    async def get_model(self, name: str, version: int) -> tuple[ModelMeta, bytes] | None:
+        return self._models.get(name, {}).get(version)
+
+    async def list_models(self, name: str) -> list[ModelMeta]:
+        return [m for _, (m, _) in sorted(self._models.get(name, {}).items())]
+
+    async def set_pin(self, name: str, version: int | None) -> None:
+        if version is None:
+            self._pins.pop(name, None)
+        else:
+            self._pins[name] = version
+
+    async def get_pin(self, name: str) -> int | None:
+        return self._pins.get(name)
+
+    async def aclose(self) -> None:
+        return None

@@ -1,0 +1,196 @@
+"""The shared store: Redis, reachable from every compute node.
+
+Per system: a hash of latest records and a hash of their versions, one stream per key
+for history (trimmed by count with MAXLEN and by age with MINID), and the model store in
+hashes and strings. A write is one Lua script (atomic: compare-and-set, latest and
+history together). Versions are compared as 20-digit strings, because Lua numbers are
+doubles and lose 64-bit precision. Connection errors are retried with exponential
+backoff; past that the operation fails with ``StoreUnavailable``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+import anyio
+import msgspec
+import redis.asyncio as aioredis
+from rap_schemas import KbRecord, ModelMeta
+from rap_sdk.keyexpr import intersects
+from redis.exceptions import ConnectionError as RedisConnectionError
+from redis.exceptions import RedisError
+from redis.exceptions import TimeoutError as RedisTimeoutError
+
+from ..core import Retention
+from ..errors import Conflict, StoreUnavailable
+from ..ports import Applied
+
+__all__ = ["RedisStore"]
+
+log = logging.getLogger(__name__)
+
+_APPLY = """
+local cur = redis.call('HGET', KEYS[1], ARGV[1])
+local cur_deleted = redis.call('HGET', KEYS[4], ARGV[1])
+if cur == false then cur = '00000000000000000000' end
+if cur == ARGV[2] and redis.call('HGET', KEYS[5], ARGV[1]) == ARGV[7] then
+  return {2, cur}
+end
+if ARGV[4] ~= '' then
+  local live = cur
+  if cur_deleted == '1' then live = '00000000000000000000' end
+  if live ~= ARGV[4] then return {-1, live} end
+end
+if ARGV[5] ~= '' then
+  redis.call('XADD', KEYS[3], 'MAXLEN', '=', ARGV[5], '*', 'r', ARGV[3])
+else
+  redis.call('XADD', KEYS[3], '*', 'r', ARGV[3])
+end
+if ARGV[6] ~= '' then redis.call('XTRIM', KEYS[3], 'MINID', ARGV[6]) end
+if ARGV[2] > cur then
+  redis.call('HSET', KEYS[1], ARGV[1], ARGV[2])
+  redis.call('HSET', KEYS[2], ARGV[1], ARGV[3])
+  redis.call('HSET', KEYS[4], ARGV[1], ARGV[8])
+  redis.call('HSET', KEYS[5], ARGV[1], ARGV[7])
+  return {1, ARGV[2]}
+end
+return {0, cur}
+"""
+
+_encode = msgspec.msgpack.Encoder().encode
+_record = msgspec.msgpack.Decoder(KbRecord).decode
+_meta = msgspec.msgpack.Decoder(ModelMeta).decode
+
+
+def _v(version: int) -> str:
+    return f"{version:020d}"
+
+
+class RedisStore:
+    def __init__(
+        self, url: str, system: str, retention: Retention, *, retry_for: float = 10.0
+    ) -> None:
+        self._retention = retention
+        self._p = f"rap:{system}:kb:"
+        self._url = url
+        self._retry_for = retry_for
+        self._client = aioredis.Redis.from_url(
+            url, socket_connect_timeout=2.0, socket_timeout=5.0, health_check_interval=10
+        )
+        self._apply_script = self._client.register_script(_APPLY)
+
+    async def open(self) -> RedisStore:
+        await self._call(self._client.ping)
+        return self
+
+    async def _call(self, fn: Callable[..., Awaitable[Any]], *args: Any, **kw: Any) -> Any:
+        """Run one command, retrying connection failures with exponential backoff for up
+        to ``retry_for`` seconds (a restarted server, a dropped link). Writes are safe to
+        repeat: re-applying the latest record is a no-op."""
+        delay, deadline = 0.02, anyio.current_time() + self._retry_for
+        while True:
+            try:
+                return await fn(*args, **kw)
+            except (RedisConnectionError, RedisTimeoutError) as exc:
+                if anyio.current_time() + delay > deadline:
+                    raise StoreUnavailable(
+                        f"redis store {self._url} unreachable for {self._retry_for} s: {exc}"
+                    ) from None
+                log.info("redis store %s: %s; retrying in %.2f s", self._url, exc, delay)
+                await anyio.sleep(delay)  # backoff between reconnection attempts
+                delay = min(delay * 2, 1.0)
+            except RedisError as exc:
+                raise StoreUnavailable(f"redis store {self._url}: {exc}") from None
+
+    async def aclose(self) -> None:
+        await self._client.aclose()
+
+    # -- records ---------------------------------------------------------------------------
+
+    async def apply(self, rec: KbRecord, *, expect: int | None = None) -> Applied:
+        p = self._p
+        limit = self._retention.limit(rec.key)
+        minid = ""
+        if limit.max_age_ns is not None:
+            minid = str((time.time_ns() - limit.max_age_ns) // 1_000_000)
+        code, cur = await self._call(
+            lambda: self._apply_script(
+                keys=[p + "ver", p + "latest", p + "h:" + rec.key, p + "deleted", p + "writer"],
+                args=[
+                    rec.key,
+                    _v(rec.version),
+                    _encode(rec),
+                    "" if expect is None else _v(expect),
+                    "" if limit.max_count is None else str(limit.max_count),
+                    minid,
+                    rec.writer,
+                    "1" if rec.deleted else "0",
+                ],
+            )
+        )
+        current = int(cur)
+        if code == -1:
+            raise Conflict(rec.key, expect, current)
+        if code == 2:
+            return Applied(current, True, duplicate=True)
+        return Applied(current, code == 1)
+
+    async def get(self, key: str) -> KbRecord | None:
+        raw = await self._call(self._client.hget, self._p + "latest", key)
+        return _record(raw) if raw is not None else None
+
+    async def history(
+        self, key: str, *, since: int | None, until: int | None, limit: int
+    ) -> list[KbRecord]:
+        lo = "-" if since is None else str(max(0, since // 1_000_000 - 1000))
+        entries = await self._call(self._client.xrange, self._p + "h:" + key, min=lo, max="+")
+        recs = [_record(fields[b"r"]) for _, fields in entries]
+        out = [
+            r for r in recs if (since is None or r.ts >= since) and (until is None or r.ts < until)
+        ]
+        out.sort(key=lambda r: (r.ts, r.version))
+        return out[-limit:] if limit else []
+
+    async def keys(self, pattern: str) -> list[str]:
+        flags = await self._call(self._client.hgetall, self._p + "deleted")
+        return sorted(
+            k.decode() for k, d in flags.items() if d == b"0" and intersects(pattern, k.decode())
+        )
+
+    # -- models ----------------------------------------------------------------------------
+
+    async def put_model(self, meta: ModelMeta, data: bytes) -> None:
+        p = self._p
+
+        async def put() -> None:
+            async with self._client.pipeline(transaction=True) as pipe:
+                pipe.set(f"{p}model:{meta.name}:{meta.version}", data)
+                pipe.hset(f"{p}models:{meta.name}", str(meta.version), _encode(meta))
+                await pipe.execute()
+
+        await self._call(put)
+
+    async def get_model(self, name: str, version: int) -> tuple[ModelMeta, bytes] | None:
+        p = self._p
+        meta = await self._call(self._client.hget, f"{p}models:{name}", str(version))
+        if meta is None:
+            return None
+        data = await self._call(self._client.get, f"{p}model:{name}:{version}")
+        return _meta(meta), bytes(data or b"")
+
+    async def list_models(self, name: str) -> list[ModelMeta]:
+        metas = await self._call(self._client.hvals, f"{self._p}models:{name}")
+        return sorted((_meta(m) for m in metas), key=lambda m: m.version)
+
+    async def set_pin(self, name: str, version: int | None) -> None:
+        if version is None:
+            await self._call(self._client.hdel, self._p + "pins", name)
+        else:
+            await self._call(self._client.hset, self._p + "pins", name, str(version))
+
+    async def get_pin(self, name: str) -> int | None:
+        raw = await self._call(self._client.hget, self._p + "pins", name)
+        return int(raw) if raw is not None else None

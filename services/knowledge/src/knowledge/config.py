@@ -1,0 +1,29 @@
+"""Configuration of the knowledge service (validated, unknown fields refused)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import msgspec
+
+__all__ = ["HistoryRule", "KnowledgeConfig"]
+
+
+class HistoryRule(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """Bounded history for the keys matching ``pattern`` (``*``/``**`` chunks)."""
+
+    pattern: str = "**"
+    max_count: int | None = 1000
+    max_age_s: float | None = None
+
+
+class KnowledgeConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    system: str = "rap"
+    backend: Literal["memory", "sqlite", "redis"] = "memory"
+    sqlite_path: str = "knowledge.sqlite3"
+    redis_url: str = "redis://127.0.0.1:6379/0"
+    history: list[HistoryRule] = msgspec.field(default_factory=lambda: [HistoryRule()])
+    """First matching rule wins."""
+    max_value_bytes: int = 1 << 20
+    max_model_bytes: int = 256 << 20
+    handler_timeout: float = 30.0
