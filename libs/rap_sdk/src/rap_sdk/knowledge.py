@@ -1,0 +1,472 @@
+"""The knowledge client (DESIGN.md section 4).
+
+    async with KnowledgeClient(fabric, system="tb4", writer="planner") as kb:
+        v = await kb.write("planned_lidar_mask", mask)          # no round trip
+        v = await kb.write("plan", plan, durable=True)          # acknowledged by the service
+        mask = await kb.read("lidar_mask", LidarMask, min_version=v_from_event_ctx)
+
+Versions are hybrid-logical-clock stamps (``ms since 2024 | counter | writer tag``),
+totally ordered across writers, so a write gets its version locally and goes out on the
+write stream ``rap/<system>/kb/<key>`` without waiting. Each key the client reads is
+replicated locally: subscribed to its write stream, caught up from the service once, and
+then read without a round trip. A read that names a ``min_version`` (from the ``ctx`` of
+the event being handled) waits for it, within a deadline, then asks the service, then
+fails with :class:`KnowledgeError` naming key and versions.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import time
+import zlib
+from collections.abc import Callable
+from types import TracebackType
+from typing import Any, Final, TypeVar, overload
+
+import anyio
+import msgspec
+from anyio.abc import TaskGroup
+from rap_schemas import (
+    MODELS_PREFIX,
+    KbGet,
+    KbHistory,
+    KbList,
+    KbPut,
+    KbRecord,
+    KbReply,
+    KbRequest,
+    ModelGet,
+    ModelList,
+    ModelMeta,
+    ModelPin,
+    ModelPut,
+    keys,
+)
+
+from .envelope import Opener, Sealer, typed_decoder
+from .errors import LifecycleError, QueryError, RapError, RejectedSample
+from .fabric import Fabric, Subscription
+from .inbox import InboxPolicy, Overflow
+
+__all__ = [
+    "HybridClock",
+    "KnowledgeClient",
+    "KnowledgeError",
+    "KnowledgeTypeError",
+    "Versioned",
+]
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+_MISSING: Final = object()
+EPOCH_MS: Final = 1_704_067_200_000  # 2024-01-01T00:00:00Z
+_encode = msgspec.msgpack.Encoder().encode
+_reply = msgspec.msgpack.Decoder(KbReply).decode
+_NIL: Final = msgspec.Raw(b"\xc0")
+
+
+class KnowledgeError(RapError):
+    """A knowledge operation failed; ``code`` is the service's error kind when it
+    answered (bad-request, conflict, not-found, too-large, integrity, unavailable)."""
+
+    def __init__(self, message: str, code: str = "") -> None:
+        super().__init__(message)
+        self.code = code
+
+
+class KnowledgeTypeError(KnowledgeError):
+    """A stored value does not match the type it was read as (with the ``$.path``)."""
+
+
+class HybridClock:
+    """Hybrid logical clock: ``(ms since 2024) << 20 | counter << 8 | writer tag``.
+    Monotonic per writer, ahead of every version it has observed, and ordered across
+    writers by time first."""
+
+    def __init__(self, writer: str, now_ms: Callable[[], int] | None = None) -> None:
+        self.tag = zlib.crc32(writer.encode()) & 0xFF
+        self._now_ms = now_ms or (lambda: time.time_ns() // 1_000_000)
+        self._last = 0
+
+    def next(self) -> int:
+        wall = (self._now_ms() - EPOCH_MS) << 20
+        base = max(wall, (self._last >> 8 << 8) + (1 << 8))
+        self._last = base | self.tag
+        return self._last
+
+    def observe(self, version: int) -> None:
+        if version > self._last:
+            self._last = version >> 8 << 8 | self.tag
+
+
+class Versioned(msgspec.Struct, frozen=True):
+    """A value with its version, time and writer (what :meth:`KnowledgeClient.history`
+    returns)."""
+
+    key: str
+    version: int
+    ts: int
+    writer: str
+    value: Any
+    deleted: bool = False
+
+
+class _Replica:
+    __slots__ = ("changed", "decoded", "key", "record", "sub")
+
+    def __init__(self, key: str) -> None:
+        self.key = key
+        self.record: KbRecord | None = None
+        self.decoded: dict[Any, Any] = {}
+        self.changed = anyio.Event()
+        self.sub: Subscription | None = None
+
+    @property
+    def version(self) -> int:
+        return self.record.version if self.record is not None else 0
+
+    def offer(self, rec: KbRecord) -> bool:
+        if rec.version <= self.version:
+            return False
+        self.record = rec
+        self.decoded.clear()
+        self.changed.set()
+        self.changed = anyio.Event()
+        return True
+
+
+class KnowledgeClient:
+    def __init__(
+        self,
+        fabric: Fabric,
+        *,
+        system: str,
+        writer: str,
+        timeout: float = 2.0,
+        replica_policy: InboxPolicy | None = None,
+    ) -> None:
+        keys.system_pattern(system)
+        self.fabric = fabric
+        self.system = system
+        self.writer = writer
+        self.timeout = timeout
+        self.clock = HybridClock(writer)
+        self.sealer = Sealer(writer)
+        self.opener = Opener()
+        self._replicas: dict[str, _Replica] = {}
+        self._policy = replica_policy or InboxPolicy(capacity=8, overflow=Overflow.LATEST)
+        self._tg: TaskGroup | None = None
+        self._tg_cm: Any = None
+        self._decode_env = typed_decoder(KbRecord)
+
+    async def __aenter__(self) -> KnowledgeClient:
+        self._tg_cm = anyio.create_task_group()
+        self._tg = await self._tg_cm.__aenter__()
+        return self
+
+    async def __aexit__(
+        self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        for rep in self._replicas.values():
+            if rep.sub is not None:
+                rep.sub.close()
+        assert self._tg is not None
+        self._tg.cancel_scope.cancel()
+        await self._tg_cm.__aexit__(et, ev, tb)
+        self._tg = None
+
+    # -- writing ---------------------------------------------------------------------------
+
+    async def write(
+        self, key: str, value: Any, *, durable: bool = False, expect: int | None = None
+    ) -> int:
+        """Write ``value`` (a Struct or msgspec-encodable data); returns its version.
+
+        Without ``durable`` the write goes out on the write stream and returns at once.
+        ``durable=True`` waits for the service's acknowledgement; ``expect`` (0: the key
+        must not exist) makes it a compare-and-set, always through the service."""
+        self._check_key(key)
+        rec = KbRecord(
+            key=key,
+            version=self.clock.next(),
+            ts=time.time_ns(),
+            writer=self.writer,
+            value=msgspec.Raw(_encode(value)),
+        )
+        return await self._submit(rec, durable=durable or expect is not None, expect=expect)
+
+    async def delete(self, key: str, *, durable: bool = False, expect: int | None = None) -> int:
+        self._check_key(key)
+        rec = KbRecord(
+            key=key,
+            version=self.clock.next(),
+            ts=time.time_ns(),
+            writer=self.writer,
+            value=_NIL,
+            deleted=True,
+        )
+        return await self._submit(rec, durable=durable or expect is not None, expect=expect)
+
+    async def _submit(self, rec: KbRecord, *, durable: bool, expect: int | None) -> int:
+        if durable:
+            reply = await self._ask(rec.key, KbPut(record=rec, expect=expect))
+            if reply.version != rec.version:  # the service moved it past the current one
+                rec = msgspec.structs.replace(rec, version=reply.version)
+            self.clock.observe(reply.version)
+        else:
+            payload, _ = self.sealer.seal_message(keys.kb(self.system, rec.key), rec)
+            await self.fabric.publish(keys.kb(self.system, rec.key), payload)
+        rep = self._replicas.get(rec.key)
+        if rep is not None:
+            rep.offer(rec)
+        return rec.version
+
+    # -- reading ---------------------------------------------------------------------------
+
+    @overload
+    async def read(
+        self,
+        key: str,
+        type: type[T],
+        *,
+        default: Any = ...,
+        min_version: int = 0,
+        timeout: float | None = None,
+    ) -> T: ...
+
+    @overload
+    async def read(
+        self,
+        key: str,
+        type: None = None,
+        *,
+        default: Any = ...,
+        min_version: int = 0,
+        timeout: float | None = None,
+    ) -> Any: ...
+
+    async def read(
+        self,
+        key: str,
+        type: Any = None,
+        *,
+        default: Any = _MISSING,
+        min_version: int = 0,
+        timeout: float | None = None,
+    ) -> Any:
+        """The newest known value of ``key``, decoded as ``type`` (None: plain data).
+
+        ``min_version``: wait (within ``timeout``) until at least that version is known.
+        A missing or deleted key returns ``default`` or raises ``KnowledgeError``."""
+        rec = await self.read_record(key, min_version=min_version, timeout=timeout)
+        if rec is None or rec.deleted:
+            if default is _MISSING:
+                raise KnowledgeError(
+                    f"knowledge key {key!r} has no value; pass default= "
+                    "to read a key that may be absent",
+                    "not-found",
+                )
+            return default
+        rep = self._replicas[key]
+        hit = rep.decoded.get(type, _MISSING) if rep.record is rec else _MISSING
+        if hit is _MISSING:
+            hit = self._decode(rec, type)
+            if rep.record is rec:
+                rep.decoded[type] = hit
+        return hit
+
+    async def read_record(
+        self, key: str, *, min_version: int = 0, timeout: float | None = None
+    ) -> KbRecord | None:
+        """The newest known record of ``key`` (None when it never existed)."""
+        rep = self._replicas.get(key)
+        if rep is None:
+            rep = await self._replicate(key)
+        if rep.version >= min_version:
+            return rep.record
+        deadline = timeout if timeout is not None else self.timeout
+        with anyio.move_on_after(deadline):
+            while rep.version < min_version:
+                await rep.changed.wait()
+        if rep.version < min_version:
+            await self._refresh(rep, min_version)
+        if rep.version < min_version:
+            raise KnowledgeError(
+                f"read of {key!r} needs version >= {min_version} (written before the event "
+                f"that triggered this read) but the newest known is {rep.version} after "
+                f"{deadline} s: is the writer's write stream reaching this node?",
+                "unavailable",
+            )
+        return rep.record
+
+    @staticmethod
+    def _decode(rec: KbRecord, type: Any) -> Any:
+        try:
+            return (
+                msgspec.msgpack.decode(rec.value, type=type)
+                if type
+                else (msgspec.msgpack.decode(rec.value))
+            )
+        except msgspec.ValidationError as exc:
+            raise KnowledgeTypeError(
+                f"knowledge key {rec.key!r} (version {rec.version}) does not hold a "
+                f"{getattr(type, '__name__', type)}: {exc}"
+            ) from None
+
+    async def _replicate(self, key: str) -> _Replica:
+        self._check_key(key)
+        if self._tg is None:
+            raise LifecycleError("KnowledgeClient is not open: use 'async with'")
+        rep = self._replicas[key] = _Replica(key)
+        rep.sub = self.fabric.subscribe(
+            keys.kb(self.system, key), self._policy, prepare=self._decode_env
+        )
+        self._tg.start_soon(self._follow, rep)
+        await self._refresh(rep, 0)  # catch up after subscribing: nothing falls between
+        return rep
+
+    async def _follow(self, rep: _Replica) -> None:
+        assert rep.sub is not None
+        key = keys.kb(self.system, rep.key)
+        while True:
+            try:
+                sample = await rep.sub.get()
+            except LifecycleError:
+                return
+            missing = self.opener.stats.missing
+            try:
+                env = self.opener.open_typed(
+                    key, sample.payload, self._decode_env, KbRecord.TYPE, sample.prepared
+                )
+            except RejectedSample as exc:
+                log.warning("replica of %r: rejected a write record: %s", rep.key, exc.reason)
+                continue
+            if env is None:
+                continue  # a duplicate
+            rec: KbRecord = env.body
+            self.clock.observe(rec.version)
+            rep.offer(rec)
+            if self.opener.stats.missing > missing:  # a write went missing: catch up
+                await self._refresh(rep, 0)
+
+    async def _refresh(self, rep: _Replica, min_version: int) -> None:
+        try:
+            reply = await self._ask(rep.key, KbGet(key=rep.key, min_version=min_version))
+        except KnowledgeError as exc:
+            if exc.code != "unavailable":
+                raise
+            return  # no service: the replica follows the write stream alone
+        if reply.record is not None:
+            self.clock.observe(reply.record.version)
+            rep.offer(reply.record)
+
+    # -- history, listing ------------------------------------------------------------------
+
+    async def history(
+        self,
+        key: str,
+        type: Any = None,
+        *,
+        since: int | None = None,
+        until: int | None = None,
+        limit: int = 1000,
+    ) -> list[Versioned]:
+        """Versions of ``key`` with ``since <= ts < until`` (UTC ns), oldest first."""
+        self._check_key(key)
+        reply = await self._ask(key, KbHistory(key=key, since=since, until=until, limit=limit))
+        return [
+            Versioned(
+                r.key,
+                r.version,
+                r.ts,
+                r.writer,
+                None if r.deleted else self._decode(r, type),
+                r.deleted,
+            )
+            for r in reply.records
+        ]
+
+    async def keys(self, pattern: str = "**") -> list[str]:
+        reply = await self._ask("_keys", KbList(pattern=pattern))
+        return reply.keys
+
+    # -- model store -----------------------------------------------------------------------
+
+    async def put_model(
+        self, name: str, data: bytes, *, tags: dict[str, str] | None = None
+    ) -> ModelMeta:
+        digest = hashlib.sha256(data).hexdigest()
+        reply = await self._ask(
+            f"{MODELS_PREFIX}/{name}",
+            ModelPut(name=name, data=data, sha256=digest, tags=tags or {}),
+            timeout=max(self.timeout, 30.0),
+        )
+        assert reply.model is not None
+        return reply.model
+
+    async def get_model(self, name: str, version: int | None = None) -> tuple[ModelMeta, bytes]:
+        """The pinned (else latest) version, or ``version``; integrity is checked."""
+        reply = await self._ask(
+            f"{MODELS_PREFIX}/{name}",
+            ModelGet(name=name, version=version),
+            timeout=max(self.timeout, 30.0),
+        )
+        assert reply.model is not None
+        if hashlib.sha256(reply.data).hexdigest() != reply.model.sha256:
+            raise KnowledgeError(
+                f"model {name!r} version {reply.model.version} arrived "
+                "corrupted (sha256 mismatch); fetch it again",
+                "integrity",
+            )
+        return reply.model, reply.data
+
+    async def list_models(self, name: str) -> tuple[list[ModelMeta], int | None]:
+        """Versions of ``name`` and the pinned one (None: latest wins)."""
+        reply = await self._ask(f"{MODELS_PREFIX}/{name}", ModelList(name=name))
+        return reply.models, reply.pinned
+
+    async def pin_model(self, name: str, version: int | None) -> int | None:
+        reply = await self._ask(f"{MODELS_PREFIX}/{name}", ModelPin(name=name, version=version))
+        return reply.pinned
+
+    async def rollback_model(self, name: str) -> int | None:
+        """Pin the version before the one in force; returns the pinned version."""
+        reply = await self._ask(f"{MODELS_PREFIX}/{name}", ModelPin(name=name, rollback=True))
+        return reply.pinned
+
+    # -- plumbing --------------------------------------------------------------------------
+
+    @staticmethod
+    def _check_key(key: str) -> None:
+        keys.kb("x", key)
+        if key.split("/")[0].startswith("_"):
+            raise KnowledgeError(
+                f"knowledge key {key!r}: keys whose first chunk starts with '_' are reserved",
+                "bad-request",
+            )
+
+    async def _ask(self, key: str, request: KbRequest, *, timeout: float | None = None) -> KbReply:
+        selector = keys.kb(self.system, key)
+        try:
+            replies = await self.fabric.query(
+                selector, _encode(request), timeout=timeout or self.timeout
+            )
+        except QueryError as exc:
+            raise KnowledgeError(
+                f"knowledge service did not answer: {exc}", "unavailable"
+            ) from None
+        if not replies:
+            raise KnowledgeError(
+                f"no knowledge service answered for system {self.system!r} (is it "
+                "running and connected?)",
+                "unavailable",
+            )
+        first = replies[0]
+        if not first.ok:
+            raise KnowledgeError(first.payload.decode(errors="replace"), "unavailable")
+        reply = _reply(first.payload)
+        if not reply.ok:
+            raise KnowledgeError(reply.error, reply.code)
+        return reply

@@ -1,0 +1,51 @@
+"""``python -m knowledge``: the knowledge service on its own Zenoh session."""
+
+from __future__ import annotations
+
+import logging
+import signal
+from typing import Annotated, Literal
+
+import anyio
+import typer
+from rap_sdk import ZenohConfig, ZenohFabric
+
+from .app import open_service
+from .config import KnowledgeConfig
+
+cli = typer.Typer(add_completion=False, help=__doc__)
+Backend = Literal["memory", "sqlite", "redis"]
+
+
+@cli.command()
+def main(
+    system: Annotated[str, typer.Option(help="System name: serves rap/<system>/kb/**.")] = "rap",
+    backend: Annotated[Backend, typer.Option(help="memory, sqlite or redis.")] = "memory",
+    sqlite_path: Annotated[str, typer.Option(help="SQLite file.")] = "knowledge.sqlite3",
+    redis_url: Annotated[str, typer.Option(help="Redis URL.")] = "redis://127.0.0.1:6379/0",
+    listen: Annotated[list[str] | None, typer.Option(help="Zenoh listen endpoint.")] = None,
+    connect: Annotated[list[str] | None, typer.Option(help="Zenoh endpoint to connect.")] = None,
+    log_level: Annotated[str, typer.Option(help="Logging level.")] = "INFO",
+) -> None:
+    """Serve knowledge for one system until SIGTERM or SIGINT."""
+    logging.basicConfig(level=log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    config = KnowledgeConfig(
+        system=system, backend=backend, sqlite_path=sqlite_path, redis_url=redis_url
+    )
+    zconf = ZenohConfig(listen=listen or ["tcp/127.0.0.1:0"], connect=connect or [])
+    anyio.run(_serve, config, zconf)
+
+
+async def _serve(config: KnowledgeConfig, zconf: ZenohConfig) -> None:
+    log = logging.getLogger("knowledge")
+    with anyio.open_signal_receiver(signal.SIGTERM, signal.SIGINT) as signals:
+        async with ZenohFabric(zconf) as fabric, open_service(config, fabric=fabric):
+            log.info("ready: system %r, %s backend", config.system, config.backend)
+            print("READY", flush=True)
+            async for _ in signals:
+                log.info("stopping")
+                break
+
+
+if __name__ == "__main__":
+    cli()

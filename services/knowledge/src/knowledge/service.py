@@ -1,0 +1,252 @@
+"""The knowledge service: serves ``rap/<system>/kb/**`` (DESIGN.md section 4).
+
+- Follows the write stream (``KbRecord`` envelopes on ``rap/<system>/kb/<key>``) and
+  stores every record (non-durable writes).
+- Answers queries on the same keys (``KbRequest`` -> ``KbReply``): durable writes and
+  compare-and-set (stored, then republished on the write stream for replicas), get,
+  history, key listing, and the model store under ``_models/<name>``.
+- Bad input (unknown operation, oversized value, wrong type, malformed key) gets an
+  error reply with the reason; the service carries on.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterable
+from typing import Any
+
+import anyio
+import msgspec
+from anyio.abc import TaskStatus
+from rap_schemas import (
+    MODELS_PREFIX,
+    KbDelete,
+    KbGet,
+    KbHistory,
+    KbList,
+    KbPut,
+    KbRecord,
+    KbReply,
+    KbRequest,
+    ModelGet,
+    ModelList,
+    ModelMeta,
+    ModelPin,
+    ModelPut,
+    keys,
+)
+from rap_sdk import Fabric, InboxPolicy, Opener, QueryRequest, RapError, Reply, Sealer
+from rap_sdk.envelope import typed_decoder
+from rap_sdk.errors import LifecycleError, RejectedSample
+from rap_sdk.inbox import Overflow
+
+from .config import KnowledgeConfig
+from .core import check_key, check_model, check_pattern, check_record, sha256
+from .errors import BadRequest, IntegrityError, KnowledgeError, NotFound
+from .ports import Store
+
+__all__ = ["KnowledgeService", "ServiceStats"]
+
+log = logging.getLogger(__name__)
+
+NODE = "knowledge"
+_encode = msgspec.msgpack.Encoder().encode
+_request = msgspec.msgpack.Decoder(KbRequest).decode
+_STREAM = typed_decoder(KbRecord)
+
+
+class ServiceStats(msgspec.Struct):
+    stream_applied: int = 0
+    stream_rejected: int = 0
+    stream_failed: int = 0
+    queries: int = 0
+    query_errors: int = 0
+
+
+class KnowledgeService:
+    def __init__(self, config: KnowledgeConfig, *, fabric: Fabric, store: Store) -> None:
+        self.config = config
+        self.fabric = fabric
+        self.store = store
+        self.stats = ServiceStats()
+        self.sealer = Sealer(NODE)
+        self.opener = Opener()
+        self._prefix = keys.kb(config.system, "x")[:-1]
+
+    async def run(self, *, task_status: TaskStatus[None] = anyio.TASK_STATUS_IGNORED) -> None:
+        """Serve until cancelled; ready (subscribed and serving) when started."""
+        pattern = keys.pattern(self.config.system, keys.Kind.KB)
+        stream = self.fabric.subscribe(
+            pattern,
+            InboxPolicy(capacity=65536, overflow=Overflow.FIFO, block=True),
+            prepare=_STREAM,
+        )
+        queryable = self.fabric.serve(pattern, self._answer)
+        token = self.fabric.declare_token(keys.alive(self.config.system, NODE))
+        try:
+            task_status.started()
+            await self._follow(stream)
+        finally:
+            token.undeclare()
+            queryable.undeclare()
+            stream.close()
+
+    # -- the write stream ------------------------------------------------------------------
+
+    async def _follow(self, stream: Any) -> None:
+        while True:
+            try:
+                sample = await stream.get()
+            except LifecycleError:
+                return
+            try:
+                env = self.opener.open_typed(
+                    sample.key, sample.payload, _STREAM, KbRecord.TYPE, sample.prepared
+                )
+                if env is None or env.source == NODE:
+                    continue  # a duplicate, or our own republication of a durable write
+                rec: KbRecord = env.body
+                if sample.key != self._prefix + rec.key:
+                    raise BadRequest(f"record for {rec.key!r} arrived on {sample.key!r}")
+                await self.store.apply(check_record(rec, self.config.max_value_bytes))
+                self.stats.stream_applied += 1
+            except (RejectedSample, BadRequest) as exc:
+                self.stats.stream_rejected += 1
+                log.warning(
+                    "write stream: rejected a record on %s: %s",
+                    sample.key,
+                    getattr(exc, "reason", exc),
+                )
+            except KnowledgeError as exc:  # the store failed: counted, logged, carry on
+                self.stats.stream_failed += 1
+                log.error("write stream: could not store a record on %s: %s", sample.key, exc)
+
+    # -- queries ---------------------------------------------------------------------------
+
+    async def _answer(self, query: QueryRequest) -> Iterable[Reply]:
+        self.stats.queries += 1
+        try:
+            with anyio.fail_after(self.config.handler_timeout):
+                reply = await self._dispatch(_request(query.payload))
+        except msgspec.ValidationError as exc:
+            reply = self._error(BadRequest(f"invalid knowledge request: {exc}"))
+        except msgspec.DecodeError as exc:
+            reply = self._error(BadRequest(f"undecodable knowledge request: {exc}"))
+        except (KnowledgeError, RapError) as exc:
+            reply = self._error(exc)
+        except TimeoutError:
+            reply = self._error(
+                KnowledgeError(f"the store did not answer within {self.config.handler_timeout} s")
+            )
+        key = query.key if "*" not in query.key else keys.kb(self.config.system, "_keys")
+        return [Reply(key, _encode(reply))]
+
+    def _error(self, exc: Exception) -> KbReply:
+        self.stats.query_errors += 1
+        code = getattr(exc, "code", "error")
+        log.info("knowledge request failed (%s): %s", code, exc)
+        return KbReply(ok=False, code=code, error=str(exc))
+
+    async def _dispatch(self, req: Any) -> KbReply:
+        store = self.store
+        if isinstance(req, KbPut):
+            return await self._put(
+                check_record(req.record, self.config.max_value_bytes), req.expect
+            )
+        if isinstance(req, KbDelete):
+            rec = KbRecord(
+                key=check_key(req.key),
+                version=req.version,
+                ts=time.time_ns(),
+                writer=req.writer,
+                value=msgspec.Raw(b"\xc0"),
+                deleted=True,
+            )
+            return await self._put(rec, req.expect)
+        if isinstance(req, KbGet):
+            latest = await store.get(check_key(req.key))
+            return KbReply(record=latest, version=latest.version if latest else 0)
+        if isinstance(req, KbHistory):
+            if req.limit < 1 or req.limit > 100_000:
+                raise BadRequest(f"history limit must be 1..100000, got {req.limit}")
+            recs = await store.history(
+                check_key(req.key), since=req.since, until=req.until, limit=req.limit
+            )
+            return KbReply(records=recs)
+        if isinstance(req, KbList):
+            return KbReply(keys=await store.keys(check_pattern(req.pattern)))
+        return await self._models(req)
+
+    async def _put(self, rec: KbRecord, expect: int | None) -> KbReply:
+        current = await self.store.get(rec.key)
+        if current is not None and rec.version <= current.version and expect is not None:
+            # a compare-and-set must become the latest: move it past the current version
+            rec = msgspec.structs.replace(rec, version=current.version + (1 << 8))
+        applied = await self.store.apply(rec, expect=expect)
+        if applied.latest and not applied.duplicate:
+            key = keys.kb(self.config.system, rec.key)
+            payload, _ = self.sealer.seal_message(key, rec)
+            await self.fabric.publish(key, payload)  # replicas follow the stream
+        return KbReply(version=rec.version if applied.latest else applied.version)
+
+    # -- model store -----------------------------------------------------------------------
+
+    async def _models(self, req: Any) -> KbReply:
+        store = self.store
+        if isinstance(req, ModelPut):
+            check_model(req.name, req.data, req.sha256, self.config.max_model_bytes)
+            versions = await store.list_models(req.name)
+            meta = ModelMeta(
+                name=req.name,
+                version=(versions[-1].version + 1) if versions else 1,
+                sha256=req.sha256,
+                size=len(req.data),
+                created=time.time_ns(),
+                tags=req.tags,
+            )
+            await store.put_model(meta, req.data)
+            return KbReply(model=meta, pinned=await store.get_pin(req.name))
+        if isinstance(req, ModelGet):
+            version = req.version or await self._current_model(req.name)
+            got = await store.get_model(req.name, version)
+            if got is None:
+                raise NotFound(f"model {req.name!r} has no version {version}")
+            meta, data = got
+            if sha256(data) != meta.sha256:
+                raise IntegrityError(
+                    f"model {req.name!r} version {version} is corrupted in "
+                    "the store (sha256 mismatch); put it again"
+                )
+            return KbReply(model=meta, data=data if req.with_data else b"")
+        if isinstance(req, ModelList):
+            return KbReply(
+                models=await store.list_models(req.name), pinned=await store.get_pin(req.name)
+            )
+        if isinstance(req, ModelPin):
+            numbers = [m.version for m in await store.list_models(req.name)]
+            if not numbers:
+                raise NotFound(f"no model named {req.name!r}")
+            target = req.version
+            if req.rollback:
+                current = await self._current_model(req.name)
+                older = [v for v in numbers if v < current]
+                if not older:
+                    raise NotFound(
+                        f"model {req.name!r}: nothing older than version {current} to roll back to"
+                    )
+                target = older[-1]
+            if target is not None and target not in numbers:
+                raise NotFound(f"model {req.name!r} has no version {target}; it has {numbers}")
+            await store.set_pin(req.name, target)
+            return KbReply(pinned=target)
+        raise BadRequest(f"unknown knowledge operation {type(req).__name__}")
+
+    async def _current_model(self, name: str) -> int:
+        pinned = await self.store.get_pin(name)
+        if pinned is not None:
+            return pinned
+        versions = await self.store.list_models(name)
+        if not versions:
+            raise NotFound(f"no model named {name!r} (under {MODELS_PREFIX}/)")
+        return versions[-1].version
