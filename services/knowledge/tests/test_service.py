@@ -153,3 +153,13 @@ async def test_corrupted_models_are_refused(tmp_path: Any) -> None:
         with pytest.raises(KnowledgeError, match="corrupted in the store") as exc:
             await w.get_model("m")
         assert exc.value.code == "integrity"
+
+
+async def test_a_durable_write_wins_over_the_version_the_service_holds() -> None:
+    async with deployment("memory") as d:
+        fast, slow = await d.client("fast"), await d.client("slow")
+        fast.clock.observe(fast.clock.next() + (1000 << 20))  # a clock 1 s ahead
+        ahead = await fast.write("k", "fast", durable=True)
+        behind = await slow.write("k", "slow", durable=True)  # later, with a lower clock
+        assert behind > ahead
+        assert await fast.read("k") == "slow"

@@ -180,8 +180,9 @@ class KnowledgeService:
 
     async def _put(self, rec: KbRecord, expect: int | None) -> KbReply:
         current = await self.store.get(rec.key)
-        if current is not None and rec.version <= current.version and expect is not None:
-            # a compare-and-set must become the latest: move it past the current version
+        if current is not None and rec.version <= current.version:
+            # The service orders durable writes: one that arrives after the current
+            # version wins, even from a writer whose clock had not seen that version.
             rec = msgspec.structs.replace(rec, version=current.version + (1 << 8))
         applied = await self.store.apply(rec, expect=expect)
         if applied.latest and not applied.duplicate:
