@@ -29,18 +29,31 @@ from .fabric import (
     ZenohFabric,
 )
 from .inbox import InboxPolicy, Overflow
+from .knowledge import KnowledgeClient, KnowledgeError, KnowledgeTypeError
 from .node import Node
-from .runtime import Context, NodeGroup, NodeRuntime, NodeStats, run_nodes, serve
+from .runtime import (
+    Context,
+    ContextKnowledge,
+    NodeGroup,
+    NodeRuntime,
+    NodeStats,
+    run_nodes,
+    serve,
+)
 
 __all__ = [
     "BackpressureTimeout",
     "Clock",
     "ConfigError",
     "Context",
+    "ContextKnowledge",
     "Fabric",
     "FabricError",
     "HandlerError",
     "InboxPolicy",
+    "KnowledgeClient",
+    "KnowledgeError",
+    "KnowledgeTypeError",
     "LifecycleError",
     "LivelinessChange",
     "MemoryBus",

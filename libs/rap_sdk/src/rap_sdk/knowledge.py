@@ -160,6 +160,8 @@ class KnowledgeClient:
         self._tg: TaskGroup | None = None
         self._tg_cm: Any = None
         self._decode_env = typed_decoder(KbRecord)
+        self.waits = 0
+        """Reads that had to wait for the version their trigger promised."""
 
     async def __aenter__(self) -> KnowledgeClient:
         self._tg_cm = anyio.create_task_group()
@@ -277,6 +279,11 @@ class KnowledgeClient:
                 rep.decoded[type] = hit
         return hit
 
+    def known_version(self, key: str) -> int:
+        """The version of ``key`` this client knows (0: none or not replicated)."""
+        rep = self._replicas.get(key)
+        return rep.version if rep is not None else 0
+
     async def read_record(
         self, key: str, *, min_version: int = 0, timeout: float | None = None
     ) -> KbRecord | None:
@@ -286,6 +293,7 @@ class KnowledgeClient:
             rep = await self._replicate(key)
         if rep.version >= min_version:
             return rep.record
+        self.waits += 1
         deadline = timeout if timeout is not None else self.timeout
         with anyio.move_on_after(deadline):
             while rep.version < min_version:

@@ -20,7 +20,7 @@ from typing import Any
 
 import anyio
 from anyio.abc import TaskStatus
-from rap_schemas import Message, Rejection, StageTrace, keys
+from rap_schemas import KnowledgeAccess, Message, Rejection, StageTrace, keys
 
 from .envelope import (
     Clock,
@@ -33,6 +33,7 @@ from .envelope import (
 )
 from .errors import LifecycleError, RapError, RejectedSample
 from .fabric import Fabric, Sample, Subscription
+from .knowledge import _MISSING, KnowledgeClient
 from .node import Node, Route
 
 __all__ = ["Context", "NodeGroup", "NodeRuntime", "NodeStats", "run_nodes"]
@@ -58,7 +59,7 @@ class NodeStats:
 class Context:
     """What a handler gets: the triggering envelope and ways to act in its cycle."""
 
-    __slots__ = ("_rt", "cycle", "envelope", "key", "message")
+    __slots__ = ("_kb", "_rt", "cycle", "envelope", "key", "message", "written")
 
     def __init__(
         self, rt: NodeRuntime, key: str, envelope: TypedEnvelope[Any], message: Any
@@ -68,6 +69,22 @@ class Context:
         self.envelope = envelope
         self.message = message
         self.cycle: bytes = envelope.cycle or envelope.uid
+        self.written: dict[str, int] | None = None
+        """Knowledge versions this handler wrote: carried in what it emits."""
+        self._kb: ContextKnowledge | None = None
+
+    @property
+    def kb(self) -> ContextKnowledge:
+        """Knowledge, causally: reads wait for the versions the trigger promised."""
+        if self._kb is None:
+            self._kb = ContextKnowledge(self)
+        return self._kb
+
+    def _ctx_out(self) -> dict[str, int] | None:
+        inherited, written = self.envelope.ctx, self.written
+        if not written:
+            return inherited or None
+        return {**inherited, **written} if inherited else dict(written)
 
     @property
     def node(self) -> Node:
@@ -85,13 +102,72 @@ class Context:
         """Emit event ``name`` in this cycle, caused by the triggering envelope."""
         rt = self._rt
         key = rt.event_keys.get(name) or rt.build_key(keys.event, name, rt.event_keys)
-        return await rt.send(key, message, cycle=self.cycle, cause=self.envelope.uid)
+        return await rt.send(
+            key, message, cycle=self.cycle, cause=self.envelope.uid, ctx=self._ctx_out()
+        )
 
     async def publish(self, topic: str, message: Message) -> OutgoingEnvelope:
         """Publish on data topic ``topic`` in this cycle."""
         rt = self._rt
         key = rt.data_keys.get(topic) or rt.build_key(keys.data, topic, rt.data_keys)
-        return await rt.send(key, message, cycle=self.cycle, cause=self.envelope.uid)
+        return await rt.send(
+            key, message, cycle=self.cycle, cause=self.envelope.uid, ctx=self._ctx_out()
+        )
+
+
+class ContextKnowledge:
+    """``ctx.kb``: the node's knowledge client, seen from one handler call.
+
+    A read of a key named in the triggering envelope's ``ctx`` returns at least that
+    version (it waits within the client's deadline, else raises ``KnowledgeError``
+    naming key and versions). Writes are remembered and carried, with what the trigger
+    carried, in the ``ctx`` of what this handler emits. Each read and write is traced
+    as a ``KnowledgeAccess`` record when someone subscribes to the node's trace key."""
+
+    __slots__ = ("_ctx",)
+
+    def __init__(self, ctx: Context) -> None:
+        self._ctx = ctx
+
+    @property
+    def client(self) -> KnowledgeClient:
+        return self._ctx._rt.knowledge
+
+    async def read(
+        self,
+        key: str,
+        type: Any = None,
+        *,
+        default: Any = _MISSING,
+        timeout: float | None = None,
+    ) -> Any:
+        ctx = self._ctx
+        kw = {} if default is _MISSING else {"default": default}
+        value = await self.client.read(
+            key, type, min_version=ctx.envelope.ctx.get(key, 0), timeout=timeout, **kw
+        )
+        await ctx._rt.trace_access("read", key, self.client.known_version(key), ctx.cycle)
+        return value
+
+    async def write(
+        self, key: str, value: Any, *, durable: bool = False, expect: int | None = None
+    ) -> int:
+        ctx = self._ctx
+        version = await self.client.write(key, value, durable=durable, expect=expect)
+        if ctx.written is None:
+            ctx.written = {}
+        ctx.written[key] = version
+        await ctx._rt.trace_access("write", key, version, ctx.cycle)
+        return version
+
+    async def delete(self, key: str, *, durable: bool = False, expect: int | None = None) -> int:
+        ctx = self._ctx
+        version = await self.client.delete(key, durable=durable, expect=expect)
+        if ctx.written is None:
+            ctx.written = {}
+        ctx.written[key] = version
+        await ctx._rt.trace_access("delete", key, version, ctx.cycle)
+        return version
 
 
 class _RateLimited:
@@ -134,6 +210,7 @@ class NodeRuntime:
         self._log_key = keys.log(system, node.name)
         self._stopping: anyio.Event | None = None
         self._stop_requested = False
+        self._knowledge: KnowledgeClient | None = None
         self.event_keys: dict[str, str] = {}
         self.data_keys: dict[str, str] = {}
         self._state = "new"
@@ -201,6 +278,29 @@ class NodeRuntime:
         )
         payload, _ = self.sealer.seal_message(self._trace_key, rec, cycle=cycle, cause=env.uid)
         await self._publish_record(self._trace_key, payload)
+
+    async def trace_access(self, op: str, key: str, version: int, cycle: bytes) -> None:
+        """A ``KnowledgeAccess`` record, when someone subscribes to the trace key."""
+        if self.trace and self.fabric.has_subscribers(self._trace_key):
+            rec = KnowledgeAccess(
+                node=self.node.name,
+                op=op,  # type: ignore[arg-type]
+                key=key,
+                version=version,
+                ts=self.clock.time_ns(),
+                cycle=cycle,
+            )
+            payload, _ = self.sealer.seal_message(self._trace_key, rec, cycle=cycle)
+            await self._publish_record(self._trace_key, payload)
+
+    @property
+    def knowledge(self) -> KnowledgeClient:
+        if self._knowledge is None:
+            raise LifecycleError(
+                f"node {self.node.name!r} is not running: knowledge is "
+                "available inside handlers of a running node"
+            )
+        return self._knowledge
 
     async def _publish_record(self, key: str, payload: bytes) -> None:
         """Publish a trace or rejection record. A record that cannot go out (fabric
@@ -317,7 +417,11 @@ class NodeRuntime:
             self._stopping.set()
         token = None
         try:
-            async with anyio.create_task_group() as tg:
+            async with (
+                KnowledgeClient(self.fabric, system=self.system, writer=self.node.name) as kb,
+                anyio.create_task_group() as tg,
+            ):
+                self._knowledge = kb
                 for route in self.node.routes:
                     sub = self.fabric.subscribe(
                         self.route_key(route), route.policy, prepare=route.decode
