@@ -5,7 +5,7 @@ UV := $(shell command -v uv 2>/dev/null || echo "$(PYTHON) -m uv")
 RUN := $(UV) run --frozen --no-sync
 PYTEST_ARGS ?=
 
-.PHONY: help setup sync test lint format typecheck schemas bench bench-fabric demo clean
+.PHONY: help setup sync test lint format typecheck schemas bench bench-fabric bench-knowledge demo clean
 
 help:
 	@echo "make demo       run the main job on embedded defaults"
@@ -38,10 +38,15 @@ typecheck: setup
 schemas: setup
 	$(RUN) python -m rap_schemas export schemas/json
 
-bench: bench-fabric
+# Both suites run even if the first misses a budget; make fails if either did.
+bench: setup
+	@rc=0; $(RUN) python -m bench.fabric || rc=1; $(RUN) python -m bench.knowledge || rc=1; exit $$rc
 
 bench-fabric: setup
 	$(RUN) python -m bench.fabric
+
+bench-knowledge: setup
+	$(RUN) python -m bench.knowledge
 
 demo: setup
 	@echo "make demo: the lidar-occlusion loop is not built yet; the workspace is installed, and 'make test' runs the SDK suite."

@@ -11,7 +11,7 @@ import typer
 from rap_sdk import ZenohConfig, ZenohFabric
 
 from .app import open_service
-from .config import KnowledgeConfig
+from .config import HistoryRule, KnowledgeConfig
 
 cli = typer.Typer(add_completion=False, help=__doc__)
 Backend = Literal["memory", "sqlite", "redis"]
@@ -25,14 +25,23 @@ def main(
     redis_url: Annotated[str, typer.Option(help="Redis URL.")] = "redis://127.0.0.1:6379/0",
     listen: Annotated[list[str] | None, typer.Option(help="Zenoh listen endpoint.")] = None,
     connect: Annotated[list[str] | None, typer.Option(help="Zenoh endpoint to connect.")] = None,
+    history_max: Annotated[int, typer.Option(help="Versions kept per key.")] = 1000,
     log_level: Annotated[str, typer.Option(help="Logging level.")] = "INFO",
 ) -> None:
     """Serve knowledge for one system until SIGTERM or SIGINT."""
     logging.basicConfig(level=log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     config = KnowledgeConfig(
-        system=system, backend=backend, sqlite_path=sqlite_path, redis_url=redis_url
+        system=system,
+        backend=backend,
+        sqlite_path=sqlite_path,
+        redis_url=redis_url,
+        history=[HistoryRule(max_count=history_max)],
     )
-    zconf = ZenohConfig(listen=listen or ["tcp/127.0.0.1:0"], connect=connect or [])
+    zconf = ZenohConfig(
+        listen=listen or ["tcp/127.0.0.1:0"],
+        connect=connect or [],
+        query_handler_timeout=config.handler_timeout,
+    )
     anyio.run(_serve, config, zconf)
 
 

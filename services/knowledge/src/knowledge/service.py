@@ -126,19 +126,14 @@ class KnowledgeService:
 
     async def _answer(self, query: QueryRequest) -> Iterable[Reply]:
         self.stats.queries += 1
-        try:
-            with anyio.fail_after(self.config.handler_timeout):
-                reply = await self._dispatch(_request(query.payload))
+        try:  # the fabric bounds the whole query with its handler deadline
+            reply = await self._dispatch(_request(query.payload))
         except msgspec.ValidationError as exc:
             reply = self._error(BadRequest(f"invalid knowledge request: {exc}"))
         except msgspec.DecodeError as exc:
             reply = self._error(BadRequest(f"undecodable knowledge request: {exc}"))
         except (KnowledgeError, RapError) as exc:
             reply = self._error(exc)
-        except TimeoutError:
-            reply = self._error(
-                KnowledgeError(f"the store did not answer within {self.config.handler_timeout} s")
-            )
         key = query.key if "*" not in query.key else keys.kb(self.config.system, "_keys")
         return [Reply(key, _encode(reply))]
 
