@@ -119,7 +119,7 @@ async def measure(quick: bool) -> dict[str, Any]:
                 while (await kb.history("h", limit=1))[-1].version != last:
                     if time.monotonic() > deadline:
                         raise RuntimeError("service did not apply the history writes")
-                    await anyio.sleep(0.01)  # noqa: ASYNC110 - completion poll, outside the measurement
+                    await anyio.sleep(0.01)  # completion poll, outside the measurement
                 hist: list[int] = []
                 for _ in range(10 if quick else 30):
                     t0 = time.perf_counter_ns()
@@ -132,8 +132,8 @@ async def measure(quick: bool) -> dict[str, Any]:
                 t0 = time.perf_counter_ns()
                 for i in range(count):
                     last = await kb.write("t", value + i.to_bytes(4, "big"))
-                while (await kb.history("t", limit=1))[-1].version != last:
-                    await anyio.sleep(0.005)  # noqa: ASYNC110 - completion poll: <= 5 ms of the run
+                while (await kb.history("t", limit=1))[-1].version != last:  # noqa: ASYNC110
+                    await anyio.sleep(0.005)  # completion poll: at most 5 ms of the run
                 secs = (time.perf_counter_ns() - t0) / 1e9
                 m["4 KiB write throughput"] = {"writes_per_s": round(count / secs), "n": count}
     m.update(await redis_baselines(n))
@@ -157,7 +157,7 @@ async def raw_query_rtt(ep: str, n: int) -> list[int]:
             [sys.executable, "-m", "bench.knowledge.peer", f"tcp/127.0.0.1:{lport}"]
         ):
             querier = session.declare_querier("bench/raw/query")
-            while not querier.matching_status.matching:
+            while not querier.matching_status.matching:  # noqa: ASYNC110
                 await anyio.sleep(0.01)  # discovery only, outside the measurement
             for _ in range(n + 50):
                 fut: asyncio.Future[None] = loop.create_future()
