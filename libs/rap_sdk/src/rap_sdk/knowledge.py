@@ -65,6 +65,8 @@ EPOCH_MS: Final = 1_704_067_200_000  # 2024-01-01T00:00:00Z
 _encode = msgspec.msgpack.Encoder().encode
 _reply = msgspec.msgpack.Decoder(KbReply).decode
 _NIL: Final = msgspec.Raw(b"\xc0")
+SERVICE_NODE: Final = "knowledge"
+"""The node name the knowledge service declares its liveliness token under."""
 
 
 class KnowledgeError(RapError):
@@ -162,11 +164,31 @@ class KnowledgeClient:
         self._decode_env = typed_decoder(KbRecord)
         self.waits = 0
         """Reads that had to wait for the version their trigger promised."""
+        self.catch_ups = 0
+        """Times every replica caught up because the knowledge service came back."""
 
     async def __aenter__(self) -> KnowledgeClient:
         self._tg_cm = anyio.create_task_group()
         self._tg = await self._tg_cm.__aenter__()
+        self._tg.start_soon(self._watch_service)
         return self
+
+    async def _watch_service(self) -> None:
+        """When the knowledge service comes (back), every replica catches up from it:
+        writes it stored while this client could not hear the stream are not missed."""
+        seen = False
+        with self.fabric.watch_liveliness(keys.alive(self.system, SERVICE_NODE)) as watch:
+            while True:
+                try:
+                    change = await watch.get()
+                except LifecycleError:
+                    return
+                if change.alive:
+                    if seen:
+                        self.catch_ups += 1
+                        for rep in list(self._replicas.values()):
+                            await self._refresh(rep, 0)
+                    seen = True
 
     async def __aexit__(
         self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None

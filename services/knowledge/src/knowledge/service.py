@@ -40,6 +40,7 @@ from rap_sdk import Fabric, InboxPolicy, Opener, QueryRequest, RapError, Reply, 
 from rap_sdk.envelope import typed_decoder
 from rap_sdk.errors import LifecycleError, RejectedSample
 from rap_sdk.inbox import Overflow
+from rap_sdk.knowledge import SERVICE_NODE
 
 from .config import KnowledgeConfig
 from .core import check_key, check_model, check_pattern, check_record, sha256
@@ -50,7 +51,7 @@ __all__ = ["KnowledgeService", "ServiceStats"]
 
 log = logging.getLogger(__name__)
 
-NODE = "knowledge"
+NODE = SERVICE_NODE
 _encode = msgspec.msgpack.Encoder().encode
 _request = msgspec.msgpack.Decoder(KbRequest).decode
 _STREAM = typed_decoder(KbRecord)
