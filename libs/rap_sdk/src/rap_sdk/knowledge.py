@@ -158,6 +158,7 @@ class KnowledgeClient:
         self.sealer = Sealer(writer)
         self.opener = Opener()
         self._replicas: dict[str, _Replica] = {}
+        self._kb_keys: dict[str, str] = {}
         self._policy = replica_policy or InboxPolicy(capacity=8, overflow=Overflow.LATEST)
         self._tg: TaskGroup | None = None
         self._tg_cm: Any = None
@@ -240,8 +241,9 @@ class KnowledgeClient:
                 rec = msgspec.structs.replace(rec, version=reply.version)
             self.clock.observe(reply.version)
         else:
-            payload, _ = self.sealer.seal_message(keys.kb(self.system, rec.key), rec)
-            await self.fabric.publish(keys.kb(self.system, rec.key), payload)
+            key = self._kb_key(rec.key)
+            payload, _ = self.sealer.seal_message(key, rec)
+            await self.fabric.publish(key, payload)
         rep = self._replicas.get(rec.key)
         if rep is not None:
             rep.offer(rec)
@@ -477,8 +479,16 @@ class KnowledgeClient:
                 "bad-request",
             )
 
+    def _kb_key(self, key: str) -> str:
+        full = self._kb_keys.get(key)
+        if full is None:
+            full = keys.kb(self.system, key)
+            if len(self._kb_keys) < 4096:
+                self._kb_keys[key] = full
+        return full
+
     async def _ask(self, key: str, request: KbRequest, *, timeout: float | None = None) -> KbReply:
-        selector = keys.kb(self.system, key)
+        selector = self._kb_key(key)
         try:
             replies = await self.fabric.query(
                 selector, _encode(request), timeout=timeout or self.timeout

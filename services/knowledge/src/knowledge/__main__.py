@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import logging
 import signal
+from pathlib import Path
 from typing import Annotated, Literal
 
 import anyio
+import msgspec
 import typer
 from rap_sdk import ZenohConfig, ZenohFabric
 
@@ -26,23 +28,42 @@ def main(
     listen: Annotated[list[str] | None, typer.Option(help="Zenoh listen endpoint.")] = None,
     connect: Annotated[list[str] | None, typer.Option(help="Zenoh endpoint to connect.")] = None,
     history_max: Annotated[int, typer.Option(help="Versions kept per key.")] = 1000,
+    config_file: Annotated[
+        Path | None,
+        typer.Option("--config", help="YAML KnowledgeConfig; when given, it sets everything."),
+    ] = None,
     log_level: Annotated[str, typer.Option(help="Logging level.")] = "INFO",
 ) -> None:
     """Serve knowledge for one system until SIGTERM or SIGINT."""
     logging.basicConfig(level=log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    config = KnowledgeConfig(
-        system=system,
-        backend=backend,
-        sqlite_path=sqlite_path,
-        redis_url=redis_url,
-        history=[HistoryRule(max_count=history_max)],
-    )
+    if config_file is not None:
+        config = load_config(config_file)
+    else:
+        config = KnowledgeConfig(
+            system=system,
+            backend=backend,
+            sqlite_path=sqlite_path,
+            redis_url=redis_url,
+            history=[HistoryRule(max_count=history_max)],
+        )
     zconf = ZenohConfig(
         listen=listen or ["tcp/127.0.0.1:0"],
         connect=connect or [],
         query_handler_timeout=config.handler_timeout,
     )
     anyio.run(_serve, config, zconf)
+
+
+def load_config(path: Path) -> KnowledgeConfig:
+    """A KnowledgeConfig from YAML; a mistake is reported with the file and field."""
+    try:
+        return msgspec.yaml.decode(path.read_bytes(), type=KnowledgeConfig)
+    except OSError as exc:
+        raise typer.BadParameter(f"cannot read {path}: {exc}") from None
+    except msgspec.ValidationError as exc:
+        raise typer.BadParameter(f"{path}: {exc}") from None
+    except msgspec.DecodeError as exc:
+        raise typer.BadParameter(f"{path}: not valid YAML: {exc}") from None
 
 
 async def _serve(config: KnowledgeConfig, zconf: ZenohConfig) -> None:

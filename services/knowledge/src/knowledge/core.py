@@ -43,13 +43,21 @@ class Retention:
         return hit
 
 
+_VALID_KEYS: set[str] = set()
+"""Keys already checked (bounded): a key is validated once, not on every request."""
+
+
 def check_key(key: str) -> str:
+    if key in _VALID_KEYS:
+        return key
     try:
         keys.kb("x", key)
     except keys.KeyError_ as exc:
         raise BadRequest(str(exc)) from None
     if key == MODELS_PREFIX or key.startswith(MODELS_PREFIX + "/"):
         raise BadRequest(f"knowledge key {key!r} is reserved for the model store")
+    if len(_VALID_KEYS) < 65536:
+        _VALID_KEYS.add(key)
     return key
 
 

@@ -182,9 +182,12 @@ class KnowledgeService:
             rec = msgspec.structs.replace(rec, version=current.version + (1 << 8))
         applied = await self.store.apply(rec, expect=expect)
         if applied.latest and not applied.duplicate:
-            key = keys.kb(self.config.system, rec.key)
-            payload, _ = self.sealer.seal_message(key, rec)
-            await self.fabric.publish(key, payload)  # replicas follow the stream
+            # replicas in other processes follow the stream (our own subscription is the
+            # service itself: it already stored the record)
+            key = self._prefix + rec.key
+            if self.fabric.has_subscribers(key, remote_only=True):
+                payload, _ = self.sealer.seal_message(key, rec)
+                await self.fabric.publish(key, payload, local=False)
         return KbReply(version=rec.version if applied.latest else applied.version)
 
     # -- model store -----------------------------------------------------------------------

@@ -112,9 +112,11 @@ class Fabric(Protocol):
         self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
     ) -> None: ...
 
-    async def publish(self, key: str, payload: bytes, *, timeout: float | None = None) -> None:
+    async def publish(
+        self, key: str, payload: bytes, *, timeout: float | None = None, local: bool = True
+    ) -> None:
         """Deliver ``payload`` on ``key``. Local FIFO inboxes with ``block`` make this
-        wait for room (at most ``timeout`` s)."""
+        wait for room (at most ``timeout`` s). ``local=False``: other processes only."""
 
     def subscribe(
         self,
@@ -130,9 +132,9 @@ class Fabric(Protocol):
         consumer must accept ``prepared is None`` (not run yet, or it raised) and do the
         work itself."""
 
-    def has_subscribers(self, key: str) -> bool:
-        """Whether a subscriber here or elsewhere matches ``key`` now (publishers may skip
-        building samples nobody would receive)."""
+    def has_subscribers(self, key: str, *, remote_only: bool = False) -> bool:
+        """Whether a subscriber here or elsewhere (``remote_only``: elsewhere) matches
+        ``key`` now (publishers may skip building samples nobody would receive)."""
 
     def serve(self, key_expr: str, handler: QueryHandler) -> Queryable: ...
 

@@ -133,7 +133,9 @@ class MemoryFabric:
         self.bus.members.remove(self)
         await self._life.close(et, ev, tb)
 
-    async def publish(self, key: str, payload: bytes, *, timeout: float | None = None) -> None:
+    async def publish(
+        self, key: str, payload: bytes, *, timeout: float | None = None, local: bool = True
+    ) -> None:
         self._life.check_open()
         if key not in self._published:
             validate(key)
@@ -144,7 +146,7 @@ class MemoryFabric:
                 )
             if len(self._published) < 4096:
                 self._published.add(key)
-        subs = self._router.matching(key)
+        subs = self._router.matching(key) if local else ()
         if subs:
             await self._router.deliver(subs, key, payload, timeout)
         for member in self.bus.members:
@@ -153,9 +155,11 @@ class MemoryFabric:
             for sub in member._router.matching(key):
                 sub.inbox.offer(sub.sample(key, payload, True))
 
-    def has_subscribers(self, key: str) -> bool:
+    def has_subscribers(self, key: str, *, remote_only: bool = False) -> bool:
         self._life.check_open()
-        return any(m._router.matching(key) for m in self.bus.members)
+        return any(
+            m._router.matching(key) for m in self.bus.members if not (remote_only and m is self)
+        )
 
     def subscribe(
         self, key_expr: str, policy: InboxPolicy | None = None, *, prepare: Prepare | None = None

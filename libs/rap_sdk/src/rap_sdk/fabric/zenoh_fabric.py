@@ -154,6 +154,8 @@ class ZenohFabric:
         self._session: zenoh.Session | None = None
         self._handoff: LoopHandoff | None = None
         self._pubs: dict[str, _Pub] = {}
+        self._selectors: set[str] = set()
+        """Query selectors already validated."""
         self._handles: set[_Handle] = set()
         self._watches: list[InboxStream[LivelinessChange]] = []
         self._id = ""
@@ -226,10 +228,12 @@ class ZenohFabric:
 
     # -- pub/sub -----------------------------------------------------------------------
 
-    async def publish(self, key: str, payload: bytes, *, timeout: float | None = None) -> None:
+    async def publish(
+        self, key: str, payload: bytes, *, timeout: float | None = None, local: bool = True
+    ) -> None:
         self._life.check_open()
         cell = self._pubs.get(key) or self._declare_publisher(key)  # validates the key
-        subs = self._router.matching(key)
+        subs = self._router.matching(key) if local else ()
         if subs:
             await self._router.deliver(subs, key, payload, timeout)
         # The matching flag flips on Zenoh's thread when a remote subscriber's
@@ -272,9 +276,9 @@ class ZenohFabric:
         self._pubs[key] = cell
         return cell
 
-    def has_subscribers(self, key: str) -> bool:
+    def has_subscribers(self, key: str, *, remote_only: bool = False) -> bool:
         self._life.check_open()
-        if self._router.matching(key):
+        if not remote_only and self._router.matching(key):
             return True
         return (self._pubs.get(key) or self._declare_publisher(key)).matching
 
@@ -428,7 +432,10 @@ class ZenohFabric:
         timeout: float = 2.0,
     ) -> list[Reply]:
         self._life.check_open()
-        validate(selector.partition("?")[0])
+        if selector not in self._selectors:
+            validate(selector.partition("?")[0])
+            if len(self._selectors) < 4096:
+                self._selectors.add(selector)
         loop = asyncio.get_running_loop()
         done: asyncio.Future[None] = loop.create_future()
         replies: list[Reply] = []
@@ -450,10 +457,12 @@ class ZenohFabric:
         # No Zenoh-side timeout: arming Zenoh's query timer costs ~50 us per query
         # (bench/knowledge). Our deadline below bounds the wait; a query left behind by
         # it is finalised by Zenoh's own default query timeout.
-        with _zenoh_errors(f"query {selector!r}"):
-            self.session.get(selector, self._callback(on_reply, on_drop), payload=payload or None)
         try:
-            with anyio.fail_after(timeout):
+            self.session.get(selector, self._callback(on_reply, on_drop), payload=payload or None)
+        except zenoh.ZError as exc:
+            raise FabricError(f"query {selector!r} failed: {exc}") from None
+        try:
+            async with asyncio.timeout(timeout):  # cheaper than an anyio scope, measured
                 await done
         except TimeoutError:
             raise QueryError(
