@@ -6,6 +6,7 @@ import hashlib
 import os
 from typing import Any
 
+import anyio
 import msgspec
 import pytest
 from knowledge.config import KnowledgeConfig
@@ -103,6 +104,11 @@ async def test_bad_requests_get_a_reason_and_the_service_carries_on(kind: str) -
                 "bad-request",
                 "history limit",
             ),
+            (
+                msgspec.msgpack.encode({"op": "get", "key": 123}),
+                "bad-request",
+                "Expected `str`, got `int` - at `$.key`",
+            ),
         ]:
             reply = await raw("k", payload)
             assert (reply.ok, reply.code) == (False, code)
@@ -116,7 +122,7 @@ async def test_bad_requests_get_a_reason_and_the_service_carries_on(kind: str) -
             await w.write("_models/x", 1)
         assert await w.write("fine", 1, durable=True) > 0  # still serving
         assert d.service is not None
-        assert d.service.stats.query_errors == 5
+        assert d.service.stats.query_errors == 6
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -163,3 +169,22 @@ async def test_a_durable_write_wins_over_the_version_the_service_holds() -> None
         behind = await slow.write("k", "slow", durable=True)  # later, with a lower clock
         assert behind > ahead
         assert await fast.read("k") == "slow"
+
+
+@pytest.mark.parametrize("kind", KINDS)
+async def test_garbage_on_the_write_stream_is_rejected_and_counted(kind: str) -> None:
+    async with deployment(kind) as d:
+        w = await d.client("w")
+        key = keys.kb("t", "k")
+        await w.fabric.publish(key, b"\xc1")  # not an envelope
+        payload, _ = w.sealer.seal_message(key, SpinCommand(omega=1.0, duration=1.0))
+        await w.fabric.publish(key, payload)  # an envelope of the wrong type
+        await w.write("k", "fine")  # and the stream goes on
+        assert await w.read("k") == "fine"
+        assert d.service is not None
+        with anyio.fail_after(5):
+            while d.service.stats.stream_applied < 1:
+                await anyio.wait_all_tasks_blocked() if kind == "memory" else anyio.sleep(0.01)
+        assert d.service.stats.stream_rejected == 2
+        hist = await w.history("k")
+        assert [h.value for h in hist] == ["fine"]

@@ -65,6 +65,8 @@ EPOCH_MS: Final = 1_704_067_200_000  # 2024-01-01T00:00:00Z
 _encode = msgspec.msgpack.Encoder().encode
 _reply = msgspec.msgpack.Decoder(KbReply).decode
 _NIL: Final = msgspec.Raw(b"\xc0")
+OWN_WRITES: Final = 1024
+"""Own writes remembered for keys not replicated yet (read-your-own-writes)."""
 SERVICE_NODE: Final = "knowledge"
 """The node name the knowledge service declares its liveliness token under."""
 
@@ -159,6 +161,8 @@ class KnowledgeClient:
         self.opener = Opener()
         self._replicas: dict[str, _Replica] = {}
         self._kb_keys: dict[str, str] = {}
+        self._own: dict[str, KbRecord] = {}
+        """This client's last write of each key it has not replicated (yet)."""
         self._policy = replica_policy or InboxPolicy(capacity=8, overflow=Overflow.LATEST)
         self._tg: TaskGroup | None = None
         self._tg_cm: Any = None
@@ -247,6 +251,12 @@ class KnowledgeClient:
         rep = self._replicas.get(rec.key)
         if rep is not None:
             rep.offer(rec)
+        else:  # read-your-own-writes: a replica made later starts from this record
+            own = self._own
+            own.pop(rec.key, None)
+            own[rec.key] = rec
+            if len(own) > OWN_WRITES:  # bounded: the oldest falls back to the service
+                del own[next(iter(own))]
         return rec.version
 
     # -- reading ---------------------------------------------------------------------------
@@ -357,6 +367,9 @@ class KnowledgeClient:
         )
         self._tg.start_soon(self._follow, rep)
         await self._refresh(rep, 0)  # catch up after subscribing: nothing falls between
+        own = self._own.pop(key, None)
+        if own is not None:
+            rep.offer(own)  # newer than what the service had stored yet, if it is
         return rep
 
     async def _follow(self, rep: _Replica) -> None:
