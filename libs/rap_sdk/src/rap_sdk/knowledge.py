@@ -62,6 +62,8 @@ log = logging.getLogger(__name__)
 T = TypeVar("T")
 _MISSING: Final = object()
 EPOCH_MS: Final = 1_704_067_200_000  # 2024-01-01T00:00:00Z
+MAX_DRIFT_MS: Final = 60_000
+"""Versions more than this far ahead of the local clock are not adopted."""
 _encode = msgspec.msgpack.Encoder().encode
 _reply = msgspec.msgpack.Decoder(KbReply).decode
 _NIL: Final = msgspec.Raw(b"\xc0")
@@ -101,7 +103,10 @@ class HybridClock:
         return self._last
 
     def observe(self, version: int) -> None:
-        if version > self._last:
+        """Move ahead of ``version``, unless it claims a time more than ``MAX_DRIFT_MS``
+        ahead of this clock (a broken writer must not drag every clock into the
+        future; the service refuses such versions too)."""
+        if version > self._last and (version >> 20) <= (self._now_ms() - EPOCH_MS + MAX_DRIFT_MS):
             self._last = version >> 8 << 8 | self.tag
 
 
@@ -118,13 +123,15 @@ class Versioned(msgspec.Struct, frozen=True):
 
 
 class _Replica:
-    __slots__ = ("changed", "decoded", "key", "record", "sub")
+    __slots__ = ("changed", "decoded", "key", "ready", "record", "sub")
 
     def __init__(self, key: str) -> None:
         self.key = key
         self.record: KbRecord | None = None
         self.decoded: dict[Any, Any] = {}
         self.changed = anyio.Event()
+        self.ready = anyio.Event()
+        """Set once the replica has caught up (concurrent first readers wait for it)."""
         self.sub: Subscription | None = None
 
     @property
@@ -181,19 +188,18 @@ class KnowledgeClient:
     async def _watch_service(self) -> None:
         """When the knowledge service comes (back), every replica catches up from it:
         writes it stored while this client could not hear the stream are not missed."""
-        seen = False
         with self.fabric.watch_liveliness(keys.alive(self.system, SERVICE_NODE)) as watch:
             while True:
                 try:
                     change = await watch.get()
                 except LifecycleError:
                     return
-                if change.alive:
-                    if seen:
-                        self.catch_ups += 1
-                        for rep in list(self._replicas.values()):
-                            await self._refresh(rep, 0)
-                    seen = True
+                if change.alive and self._replicas:
+                    # the service appeared (first time or back): replicas made without
+                    # it, or while it was away, catch up from it
+                    self.catch_ups += 1
+                    for rep in list(self._replicas.values()):
+                        await self._refresh_quietly(rep)
 
     async def __aexit__(
         self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
@@ -325,6 +331,8 @@ class KnowledgeClient:
         rep = self._replicas.get(key)
         if rep is None:
             rep = await self._replicate(key)
+        elif not rep.ready.is_set():
+            await rep.ready.wait()
         if rep.version >= min_version:
             return rep.record
         self.waits += 1
@@ -338,7 +346,8 @@ class KnowledgeClient:
             raise KnowledgeError(
                 f"read of {key!r} needs version >= {min_version} (written before the event "
                 f"that triggered this read) but the newest known is {rep.version} after "
-                f"{deadline} s: is the writer's write stream reaching this node?",
+                f"waiting {deadline} s and asking the service: is the writer's write "
+                "stream reaching this node?",
                 "unavailable",
             )
         return rep.record
@@ -366,10 +375,13 @@ class KnowledgeClient:
             keys.kb(self.system, key), self._policy, prepare=self._decode_env
         )
         self._tg.start_soon(self._follow, rep)
-        await self._refresh(rep, 0)  # catch up after subscribing: nothing falls between
-        own = self._own.pop(key, None)
-        if own is not None:
-            rep.offer(own)  # newer than what the service had stored yet, if it is
+        try:
+            await self._refresh(rep, 0)  # catch up after subscribing: nothing falls between
+        finally:
+            own = self._own.pop(key, None)
+            if own is not None:
+                rep.offer(own)  # newer than what the service had stored yet, if it is
+            rep.ready.set()
         return rep
 
     async def _follow(self, rep: _Replica) -> None:
@@ -391,10 +403,20 @@ class KnowledgeClient:
             if env is None:
                 continue  # a duplicate
             rec: KbRecord = env.body
+            if rec.key != rep.key:
+                log.warning("replica of %r: ignored a record for %r", rep.key, rec.key)
+                continue
             self.clock.observe(rec.version)
             rep.offer(rec)
             if self.opener.stats.missing > missing:  # a write went missing: catch up
-                await self._refresh(rep, 0)
+                await self._refresh_quietly(rep)
+
+    async def _refresh_quietly(self, rep: _Replica) -> None:
+        """A background catch-up: a failure is logged, the replica keeps following."""
+        try:
+            await self._refresh(rep, 0)
+        except (KnowledgeError, msgspec.MsgspecError) as exc:
+            log.warning("replica of %r: catch-up from the service failed: %s", rep.key, exc)
 
     async def _refresh(self, rep: _Replica, min_version: int) -> None:
         try:
@@ -442,7 +464,7 @@ class KnowledgeClient:
     async def put_model(
         self, name: str, data: bytes, *, tags: dict[str, str] | None = None
     ) -> ModelMeta:
-        digest = hashlib.sha256(data).hexdigest()
+        digest = await _sha256(data)
         reply = await self._ask(
             f"{MODELS_PREFIX}/{name}",
             ModelPut(name=name, data=data, sha256=digest, tags=tags or {}),
@@ -459,7 +481,7 @@ class KnowledgeClient:
             timeout=max(self.timeout, 30.0),
         )
         assert reply.model is not None
-        if hashlib.sha256(reply.data).hexdigest() != reply.model.sha256:
+        if await _sha256(reply.data) != reply.model.sha256:
             raise KnowledgeError(
                 f"model {name!r} version {reply.model.version} arrived "
                 "corrupted (sha256 mismatch); fetch it again",
@@ -523,3 +545,10 @@ class KnowledgeClient:
         if not reply.ok:
             raise KnowledgeError(reply.error, reply.code)
         return reply
+
+
+async def _sha256(data: bytes) -> str:
+    """The sha256 of ``data``; large artefacts are hashed off the event loop."""
+    if len(data) < 1 << 20:
+        return hashlib.sha256(data).hexdigest()
+    return await anyio.to_thread.run_sync(lambda: hashlib.sha256(data).hexdigest())

@@ -43,8 +43,8 @@ from rap_sdk.inbox import Overflow
 from rap_sdk.knowledge import SERVICE_NODE
 
 from .config import KnowledgeConfig
-from .core import check_key, check_model, check_pattern, check_record, sha256
-from .errors import BadRequest, IntegrityError, KnowledgeError, NotFound
+from .core import check_key, check_model, check_pattern, check_record, check_time, sha256
+from .errors import BadRequest, Conflict, IntegrityError, KnowledgeError, NotFound, TooLarge
 from .ports import Store
 
 __all__ = ["KnowledgeService", "ServiceStats"]
@@ -55,6 +55,7 @@ NODE = SERVICE_NODE
 _encode = msgspec.msgpack.Encoder().encode
 _request = msgspec.msgpack.Decoder(KbRequest).decode
 _STREAM = typed_decoder(KbRecord)
+PUT_RETRIES = 8
 
 
 class ServiceStats(msgspec.Struct):
@@ -74,6 +75,7 @@ class KnowledgeService:
         self.sealer = Sealer(NODE)
         self.opener = Opener()
         self._prefix = keys.kb(config.system, "x")[:-1]
+        self._model_locks: dict[str, anyio.Lock] = {}
 
     async def run(self, *, task_status: TaskStatus[None] = anyio.TASK_STATUS_IGNORED) -> None:
         """Serve until cancelled; ready (subscribed and serving) when started."""
@@ -112,14 +114,14 @@ class KnowledgeService:
                     raise BadRequest(f"record for {rec.key!r} arrived on {sample.key!r}")
                 await self.store.apply(check_record(rec, self.config.max_value_bytes))
                 self.stats.stream_applied += 1
-            except (RejectedSample, BadRequest) as exc:
+            except (RejectedSample, BadRequest, TooLarge) as exc:
                 self.stats.stream_rejected += 1
                 log.warning(
                     "write stream: rejected a record on %s: %s",
                     sample.key,
                     getattr(exc, "reason", exc),
                 )
-            except KnowledgeError as exc:  # the store failed: counted, logged, carry on
+            except Exception as exc:  # the store failed: counted, logged, the stream goes on
                 self.stats.stream_failed += 1
                 log.error("write stream: could not store a record on %s: %s", sample.key, exc)
 
@@ -128,13 +130,16 @@ class KnowledgeService:
     async def _answer(self, query: QueryRequest) -> Iterable[Reply]:
         self.stats.queries += 1
         try:  # the fabric bounds the whole query with its handler deadline
-            reply = await self._dispatch(_request(query.payload))
+            reply = await self._dispatch(_request(query.payload), query.key)
         except msgspec.ValidationError as exc:
             reply = self._error(BadRequest(f"invalid knowledge request: {exc}"))
         except msgspec.DecodeError as exc:
             reply = self._error(BadRequest(f"undecodable knowledge request: {exc}"))
         except (KnowledgeError, RapError) as exc:
             reply = self._error(exc)
+        except Exception as exc:  # a store or a bug: an error reply, counted; serving goes on
+            log.exception("knowledge request failed")
+            reply = self._error(KnowledgeError(f"internal error: {type(exc).__name__}: {exc}"))
         key = query.key if "*" not in query.key else keys.kb(self.config.system, "_keys")
         return [Reply(key, _encode(reply))]
 
@@ -144,22 +149,25 @@ class KnowledgeService:
         log.info("knowledge request failed (%s): %s", code, exc)
         return KbReply(ok=False, code=code, error=str(exc))
 
-    async def _dispatch(self, req: Any) -> KbReply:
+    async def _dispatch(self, req: Any, query_key: str) -> KbReply:
         store = self.store
+        key = getattr(req, "key", None) or getattr(getattr(req, "record", None), "key", None)
+        if key is not None and query_key != self._prefix + check_key(key):
+            raise BadRequest(f"request for {key!r} was sent to {query_key!r}")
         if isinstance(req, KbPut):
             return await self._put(
                 check_record(req.record, self.config.max_value_bytes), req.expect
             )
         if isinstance(req, KbDelete):
             rec = KbRecord(
-                key=check_key(req.key),
+                key=req.key,
                 version=req.version,
                 ts=time.time_ns(),
                 writer=req.writer,
                 value=msgspec.Raw(b"\xc0"),
                 deleted=True,
             )
-            return await self._put(rec, req.expect)
+            return await self._put(check_record(rec, self.config.max_value_bytes), req.expect)
         if isinstance(req, KbGet):
             latest = await store.get(check_key(req.key))
             return KbReply(record=latest, version=latest.version if latest else 0)
@@ -167,7 +175,10 @@ class KnowledgeService:
             if req.limit < 1 or req.limit > 100_000:
                 raise BadRequest(f"history limit must be 1..100000, got {req.limit}")
             recs = await store.history(
-                check_key(req.key), since=req.since, until=req.until, limit=req.limit
+                check_key(req.key),
+                since=check_time("since", req.since),
+                until=check_time("until", req.until),
+                limit=req.limit,
             )
             return KbReply(records=recs)
         if isinstance(req, KbList):
@@ -175,45 +186,55 @@ class KnowledgeService:
         return await self._models(req)
 
     async def _put(self, rec: KbRecord, expect: int | None) -> KbReply:
-        current = await self.store.get(rec.key)
-        if current is not None and rec.version <= current.version:
-            # The service orders durable writes: one that arrives after the current
-            # version wins, even from a writer whose clock had not seen that version.
-            rec = msgspec.structs.replace(rec, version=current.version + (1 << 8))
-        applied = await self.store.apply(rec, expect=expect)
-        if applied.latest and not applied.duplicate:
-            # replicas in other processes follow the stream (our own subscription is the
-            # service itself: it already stored the record)
-            key = self._prefix + rec.key
-            if self.fabric.has_subscribers(key, remote_only=True):
-                payload, _ = self.sealer.seal_message(key, rec)
-                await self.fabric.publish(key, payload, local=False)
-        return KbReply(version=rec.version if applied.latest else applied.version)
+        """Store a durable write. The service orders durable writes: one that arrives at
+        or below the key's current version is moved past it (keeping its own writer
+        tag). If another write lands between reading the current version and storing,
+        it is retried, so the reply's version is always this write's, as the latest."""
+        for _ in range(PUT_RETRIES):
+            current = await self.store.get(rec.key)
+            if current is not None and (current.version, current.writer) == (
+                rec.version,
+                rec.writer,
+            ):
+                return KbReply(version=rec.version)  # a re-sent write: already the latest
+            if current is not None and rec.version <= current.version:
+                rec = msgspec.structs.replace(
+                    rec, version=((current.version >> 8) + 1) << 8 | (rec.version & 0xFF)
+                )
+            applied = await self.store.apply(rec, expect=expect)
+            if applied.latest:
+                if not applied.duplicate:
+                    await self._republish(rec)
+                return KbReply(version=rec.version)
+        raise Conflict(rec.key, None, applied.version)
+
+    async def _republish(self, rec: KbRecord) -> None:
+        """Replicas in other processes follow the stream (the service's own
+        subscription is the service itself: it already stored the record)."""
+        key = self._prefix + rec.key
+        if self.fabric.has_subscribers(key, remote_only=True):
+            payload, _ = self.sealer.seal_message(key, rec)
+            await self.fabric.publish(key, payload, local=False)
 
     # -- model store -----------------------------------------------------------------------
 
     async def _models(self, req: Any) -> KbReply:
         store = self.store
         if isinstance(req, ModelPut):
-            check_model(req.name, req.data, req.sha256, self.config.max_model_bytes)
-            versions = await store.list_models(req.name)
-            meta = ModelMeta(
-                name=req.name,
-                version=(versions[-1].version + 1) if versions else 1,
-                sha256=req.sha256,
-                size=len(req.data),
-                created=time.time_ns(),
-                tags=req.tags,
+            await anyio.to_thread.run_sync(
+                check_model, req.name, req.data, req.sha256, self.config.max_model_bytes
             )
-            await store.put_model(meta, req.data)
-            return KbReply(model=meta, pinned=await store.get_pin(req.name))
+            async with self._model_lock(req.name):  # one version number per put
+                return await self._put_model(req)
         if isinstance(req, ModelGet):
-            version = req.version or await self._current_model(req.name)
+            version = (
+                req.version if req.version is not None else await self._current_model(req.name)
+            )
             got = await store.get_model(req.name, version)
             if got is None:
                 raise NotFound(f"model {req.name!r} has no version {version}")
             meta, data = got
-            if sha256(data) != meta.sha256:
+            if await anyio.to_thread.run_sync(sha256, data) != meta.sha256:
                 raise IntegrityError(
                     f"model {req.name!r} version {version} is corrupted in "
                     "the store (sha256 mismatch); put it again"
@@ -241,6 +262,25 @@ class KnowledgeService:
             await store.set_pin(req.name, target)
             return KbReply(pinned=target)
         raise BadRequest(f"unknown knowledge operation {type(req).__name__}")
+
+    def _model_lock(self, name: str) -> anyio.Lock:
+        lock = self._model_locks.get(name)
+        if lock is None:
+            lock = self._model_locks[name] = anyio.Lock()
+        return lock
+
+    async def _put_model(self, req: ModelPut) -> KbReply:
+        versions = await self.store.list_models(req.name)
+        meta = ModelMeta(
+            name=req.name,
+            version=(versions[-1].version + 1) if versions else 1,
+            sha256=req.sha256,
+            size=len(req.data),
+            created=time.time_ns(),
+            tags=req.tags,
+        )
+        await self.store.put_model(meta, req.data)
+        return KbReply(model=meta, pinned=await self.store.get_pin(req.name))
 
     async def _current_model(self, name: str) -> int:
         pinned = await self.store.get_pin(name)

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+import bisect
 import time
-from collections import deque
 
 from rap_schemas import KbRecord, ModelMeta
 from rap_sdk.keyexpr import intersects
@@ -15,11 +15,19 @@ from ..ports import Applied
 __all__ = ["MemoryStore"]
 
 
+def _order(r: KbRecord) -> tuple[int, int]:
+    return (r.ts, r.version)
+
+
 class MemoryStore:
+    """Latest records in a dict; per key a history list ordered by (ts, version), holding
+    each (version, writer) once, trimmed to the newest by count and age."""
+
     def __init__(self, retention: Retention) -> None:
         self._retention = retention
         self._latest: dict[str, KbRecord] = {}
-        self._history: dict[str, deque[KbRecord]] = {}
+        self._history: dict[str, list[KbRecord]] = {}
+        self._ids: dict[str, set[tuple[int, str]]] = {}
         self._models: dict[str, dict[int, tuple[ModelMeta, bytes]]] = {}
         self._pins: dict[str, int] = {}
 
@@ -32,25 +40,29 @@ class MemoryStore:
             live = cur_version if cur is not None and not cur.deleted else 0
             if live != expect:
                 raise Conflict(rec.key, expect, live)
-        hist = self._history.get(rec.key)
-        if hist is None:
-            hist = self._history[rec.key] = deque()
-        hist.append(rec)
-        self._trim(rec.key, hist)
+        ids = self._ids.setdefault(rec.key, set())
+        if (rec.version, rec.writer) not in ids:
+            ids.add((rec.version, rec.writer))
+            hist = self._history.setdefault(rec.key, [])
+            bisect.insort(hist, rec, key=_order)
+            self._trim(rec.key, hist, ids)
         if rec.version > cur_version:
             self._latest[rec.key] = rec
             return Applied(rec.version, True)
         return Applied(cur_version, False)
 
-    def _trim(self, key: str, hist: deque[KbRecord]) -> None:
+    def _trim(self, key: str, hist: list[KbRecord], ids: set[tuple[int, str]]) -> None:
         limit = self._retention.limit(key)
-        if limit.max_count is not None:
-            while len(hist) > limit.max_count:
-                hist.popleft()
+        drop = 0
+        if limit.max_count is not None and len(hist) > limit.max_count:
+            drop = len(hist) - limit.max_count
         if limit.max_age_ns is not None:
             oldest = time.time_ns() - limit.max_age_ns
-            while hist and hist[0].ts < oldest:
-                hist.popleft()
+            while drop < len(hist) and hist[drop].ts < oldest:
+                drop += 1
+        for r in hist[:drop]:
+            ids.discard((r.version, r.writer))
+        del hist[:drop]
 
     async def get(self, key: str) -> KbRecord | None:
         return self._latest.get(key)
@@ -58,11 +70,10 @@ class MemoryStore:
     async def history(
         self, key: str, *, since: int | None, until: int | None, limit: int
     ) -> list[KbRecord]:
-        hist = self._history.get(key, ())
+        hist = self._history.get(key, [])
         out = [
             r for r in hist if (since is None or r.ts >= since) and (until is None or r.ts < until)
         ]
-        out.sort(key=lambda r: (r.ts, r.version))
         return out[-limit:] if limit else []
 
     async def keys(self, pattern: str) -> list[str]:

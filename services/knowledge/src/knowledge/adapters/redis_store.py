@@ -1,7 +1,8 @@
 """The shared store: Redis, reachable from every compute node.
 
 Per system: a hash of latest records and a hash of their versions, one stream per key
-for history (trimmed by count with MAXLEN and by age with MINID), and the model store in
+for history (trimmed by count with MAXLEN and by age with MINID; a stream trims by
+arrival at the server, where the other stores keep the newest by ``ts``), and the model store in
 hashes and strings. A write is one Lua script (atomic: compare-and-set, latest and
 history together). Versions are compared as 20-digit strings, because Lua numbers are
 doubles and lose 64-bit precision. Connection errors are retried with exponential
@@ -63,6 +64,9 @@ return {0, cur}
 _encode = msgspec.msgpack.Encoder().encode
 _record = msgspec.msgpack.Decoder(KbRecord).decode
 _meta = msgspec.msgpack.Decoder(ModelMeta).decode
+
+
+SINCE_SLACK_MS = 60_000
 
 
 def _v(version: int) -> str:
@@ -145,12 +149,18 @@ class RedisStore:
     async def history(
         self, key: str, *, since: int | None, until: int | None, limit: int
     ) -> list[KbRecord]:
-        lo = "-" if since is None else str(max(0, since // 1_000_000 - 1000))
+        # stream ids are the server's arrival time; a record's ts is its writer's clock:
+        # start SINCE_SLACK_MS early so a record that arrived before its ts is found
+        lo = "-" if since is None else str(max(0, since // 1_000_000 - SINCE_SLACK_MS))
         entries = await self._call(self._client.xrange, self._p + "h:" + key, min=lo, max="+")
-        recs = [_record(fields[b"r"]) for _, fields in entries]
-        out = [
-            r for r in recs if (since is None or r.ts >= since) and (until is None or r.ts < until)
-        ]
+        seen: set[tuple[int, str]] = set()
+        out = []
+        for _, fields in entries:
+            r = _record(fields[b"r"])
+            in_window = (since is None or r.ts >= since) and (until is None or r.ts < until)
+            if in_window and (r.version, r.writer) not in seen:
+                seen.add((r.version, r.writer))
+                out.append(r)
         out.sort(key=lambda r: (r.ts, r.version))
         return out[-limit:] if limit else []
 
