@@ -193,7 +193,7 @@ def parse_world(text: str, source: str = "<world>") -> WorldSpec:
 def _check_references(world: WorldSpec, root: Any, source: str) -> None:
     names = [r.name for r in world.robots]
     for i, robot in enumerate(world.robots):
-        if names.count(robot.name) > 1:
+        if robot.name in names[:i]:  # point at the second use
             node = _locate(root, f".robots[{i}].name")
             raise WorldError(
                 f"{source}:{node.start_mark.line + 1}: robot name "
