@@ -5,7 +5,7 @@ UV := $(shell command -v uv 2>/dev/null || echo "$(PYTHON) -m uv")
 RUN := $(UV) run --frozen --no-sync
 PYTEST_ARGS ?=
 
-.PHONY: help setup sync test lint format typecheck schemas bench bench-fabric bench-knowledge demo clean
+.PHONY: help setup sync test lint format typecheck schemas bench bench-fabric bench-knowledge bench-sim demo clean
 
 help:
 	@echo "make demo       run the main job on embedded defaults"
@@ -40,13 +40,16 @@ schemas: setup
 
 # Both suites run even if the first misses a budget; make fails if either did.
 bench: setup
-	@rc=0; $(RUN) python -m bench.fabric || rc=1; $(RUN) python -m bench.knowledge || rc=1; exit $$rc
+	@rc=0; for b in fabric knowledge sim; do $(RUN) python -m bench.$$b || rc=1; done; exit $$rc
 
 bench-fabric: setup
 	$(RUN) python -m bench.fabric
 
 bench-knowledge: setup
 	$(RUN) python -m bench.knowledge
+
+bench-sim: setup
+	$(RUN) python -m bench.sim
 
 demo: setup
 	@echo "make demo: the lidar-occlusion loop is not built yet; the workspace is installed, and 'make test' runs the SDK suite."

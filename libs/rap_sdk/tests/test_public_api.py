@@ -74,6 +74,7 @@ SCHEMAS = {
     "PlanProposal",
     "Pose2D",
     "Rejection",
+    "SimTime",
     "SpinCommand",
     "SpinPlan",
     "Stage",

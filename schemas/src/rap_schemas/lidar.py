@@ -15,6 +15,7 @@ __all__ = [
     "Odometry",
     "PlanProposal",
     "Pose2D",
+    "SimTime",
     "SpinCommand",
     "SpinPlan",
     "Twist",
@@ -67,6 +68,16 @@ class Odometry(Message, frozen=True):
     frame_id: str
     pose: Pose2D
     twist: Twist
+
+
+class SimTime(Message, frozen=True):
+    """The simulator's clock (``rap/<system>/data/clock``): sim time, ns."""
+
+    TYPE = "rap.SimTime/1"
+
+    t: int
+    realtime_factor: float = 0.0
+    """0 in lockstep (as fast as possible), else sim seconds per wall second."""
 
 
 class SpinCommand(Message, frozen=True):
