@@ -37,6 +37,7 @@ typecheck: setup
 
 schemas: setup
 	$(RUN) python -m rap_schemas export schemas/json
+	$(RUN) python -m sim_world.schema
 
 # Both suites run even if the first misses a budget; make fails if either did.
 bench: setup
