@@ -29,6 +29,7 @@ from rap_schemas import LaserScan, SimTime, SpinPlan, Twist, keys
 from rap_sdk import Context, Fabric, InboxPolicy, Node, NodeRuntime, Overflow
 
 from .sim import ScanEvent, Simulation
+from .viz import RerunLog
 
 __all__ = ["SimService"]
 
@@ -48,12 +49,14 @@ class SimService:
         system: str,
         realtime_factor: float | None = None,
         on_scan: Callable[[ScanEvent], None] | None = None,
+        rerun: RerunLog | None = None,
     ) -> None:
         self.sim = sim
         self.fabric = fabric
         self.system = system
         self.realtime_factor = realtime_factor
         self.on_scan = on_scan
+        self.rerun = rerun
         self.node = Node(NODE)
         for name in sim.robots:
             self._inputs(name)
@@ -75,6 +78,8 @@ class SimService:
                 )
                 return
             self.sim.set_plan(robot, p)
+            if self.rerun is not None:
+                self.rerun.plan(robot, self.sim.t, p)
 
         @self.node.on_data(f"{robot}/cmd_vel", policy=latest)
         async def cmd_vel(ctx: Context, t: Twist) -> None:
@@ -116,3 +121,5 @@ class SimService:
         await rt.send(keys.data(self.system, f"{ev.robot}/odom"), self.sim.odometry(ev.robot))
         if self.on_scan is not None:
             self.on_scan(ev)
+        if self.rerun is not None:
+            self.rerun.scan(self.sim, ev)
