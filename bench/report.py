@@ -3,6 +3,7 @@ sections of docs/benchmarks.md (each benchmark owns the text between its markers
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import os
@@ -10,7 +11,7 @@ import platform
 import re
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -105,3 +106,35 @@ def table(headers: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
     out = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
     out += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
     return "\n".join(out)
+
+
+def run_suite(
+    name: str,
+    measure: Callable[[bool], dict[str, Any]],
+    verdicts: Callable[[dict[str, Any]], dict[str, Any]],
+    render: Callable[[dict[str, Any], dict[str, Any], dict[str, Any]], str],
+) -> int:
+    """The command line of a benchmark suite: ``--quick`` (a smoke run written to
+    ``<name>.quick.json``, the page left alone) and ``--report-only`` (exit 0 even when a
+    budget is missed). Writes the results and the suite's section of the page."""
+    ap = argparse.ArgumentParser(prog=f"python -m bench.{name}")
+    ap.add_argument("--quick", action="store_true", help="fewer iterations (smoke run)")
+    ap.add_argument("--report-only", action="store_true", help="exit 0 even if over budget")
+    args = ap.parse_args()
+    hw = hardware()
+    print(f"bench/{name} on {hardware_line(hw)}", file=sys.stderr)
+    m = measure(args.quick)
+    v = verdicts(m)
+    write_json(
+        f"{name}.quick" if args.quick else name,
+        {"hardware": hw, "quick": args.quick, "measurements": m, "budgets": v},
+    )
+    text = render(m, v, hw)
+    if not args.quick:
+        write_section(name, text)
+    print(text)
+    missed = [k for k, x in v.items() if not x["ok"]]
+    if missed and not args.report_only:
+        print(f"budget missed: {', '.join(missed)}", file=sys.stderr)
+        return 1
+    return 0

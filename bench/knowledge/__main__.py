@@ -4,7 +4,6 @@ docs/benchmarks.md; exits 1 when a budget is missed."""
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import json
 import shutil
@@ -25,7 +24,13 @@ from rap_sdk import ZenohConfig, ZenohFabric
 from rap_sdk.knowledge import KnowledgeClient
 from rap_sdk.testing import free_port
 
-from ..report import hardware, hardware_line, pct, summary_us, table, write_json, write_section
+from ..report import (
+    hardware_line,
+    pct,
+    run_suite,
+    summary_us,
+    table,
+)
 
 ROUNDS = 5
 BUDGETS = {
@@ -283,27 +288,7 @@ def verdicts(m: dict[str, Any]) -> dict[str, Any]:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.knowledge")
-    ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--report-only", action="store_true")
-    args = ap.parse_args()
-    hw = hardware()
-    print(f"bench/knowledge on {hardware_line(hw)}", file=sys.stderr)
-    m = anyio.run(measure, args.quick)
-    v = verdicts(m)
-    write_json(
-        "knowledge.quick" if args.quick else "knowledge",
-        {"hardware": hw, "quick": args.quick, "measurements": m, "budgets": v},
-    )
-    text = render(m, v, hw)
-    if not args.quick:
-        write_section("knowledge", text)
-    print(text)
-    missed = [k for k, x in v.items() if not x["ok"]]
-    if missed and not args.report_only:
-        print(f"budget missed: {', '.join(missed)}", file=sys.stderr)
-        return 1
-    return 0
+    return run_suite("knowledge", lambda quick: anyio.run(measure, quick), verdicts, render)
 
 
 if __name__ == "__main__":

@@ -4,9 +4,7 @@ when a budget is missed."""
 
 from __future__ import annotations
 
-import argparse
 import math
-import sys
 import time
 from typing import Any
 
@@ -16,7 +14,12 @@ from sim_world.physics import pymunk_ray, static_space
 from sim_world.sim import Simulation
 from sim_world.world import default_world_path, load_world
 
-from ..report import hardware, hardware_line, summary_us, table, write_json, write_section
+from ..report import (
+    hardware_line,
+    run_suite,
+    summary_us,
+    table,
+)
 
 BUDGETS = {"raycaster_vs_pymunk_scans_per_s": 5.0, "lockstep_realtime_factor": 100.0}
 
@@ -105,26 +108,7 @@ def render(m: dict[str, Any], v: dict[str, Any], hw: dict[str, Any]) -> str:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.sim")
-    ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--report-only", action="store_true")
-    args = ap.parse_args()
-    hw = hardware()
-    m = measure(args.quick)
-    v = verdicts(m)
-    write_json(
-        "sim.quick" if args.quick else "sim",
-        {"hardware": hw, "quick": args.quick, "measurements": m, "budgets": v},
-    )
-    text = render(m, v, hw)
-    if not args.quick:
-        write_section("sim", text)
-    print(text)
-    missed = [k for k, x in v.items() if not x["ok"]]
-    if missed and not args.report_only:
-        print(f"budget missed: {', '.join(missed)}", file=sys.stderr)
-        return 1
-    return 0
+    return run_suite("sim", measure, verdicts, render)
 
 
 if __name__ == "__main__":

@@ -25,4 +25,4 @@ def render() -> str:
 if __name__ == "__main__":
     path = Path(sys.argv[1]) if len(sys.argv) > 1 else SCHEMA_PATH
     path.write_text(render(), encoding="utf-8")
-    print(f"wrote {path}")  # noqa: T201 - a command-line entry
+    sys.stdout.write(f"wrote {path}\n")
