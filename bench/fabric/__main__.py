@@ -4,22 +4,13 @@ and exit 1 when a budget is missed (unless --report-only)."""
 
 from __future__ import annotations
 
-import argparse
 import sys
 from collections.abc import Awaitable, Callable
 from typing import Any
 
 import anyio
 
-from ..report import (
-    hardware,
-    hardware_line,
-    pct,
-    summary_us,
-    table,
-    write_json,
-    write_section,
-)
+from ..report import hardware_line, pct, run_suite, summary_us, table
 from . import local, remote
 
 SIZES = (64, 4096)
@@ -183,8 +174,9 @@ def verdicts(r: dict[str, Any]) -> dict[str, dict[str, Any]]:
     return v
 
 
-def render(m: dict[str, Any], r: dict[str, Any], v: dict[str, Any], hw: dict[str, Any]) -> str:
-    parts = ["## Fabric (`make bench-fabric`)", "", f"Hardware: {hw_line(hw)}", ""]
+def render(m: dict[str, Any], v: dict[str, Any], hw: dict[str, Any]) -> str:
+    r = m["ratios"]
+    parts = ["## Fabric (`make bench-fabric`)", "", f"Hardware: {hardware_line(hw)}", ""]
     parts += [
         "One-hop latency between two processes on loopback: half of a ping-pong round trip, "
         "measured from the send call to the coroutine that receives the reply. The SDK hop "
@@ -253,31 +245,14 @@ def render(m: dict[str, Any], r: dict[str, Any], v: dict[str, Any], hw: dict[str
     return "\n".join(parts)
 
 
-def hw_line(hw: dict[str, Any]) -> str:
-    return hardware_line(hw)
-
-
 def main() -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.fabric")
-    ap.add_argument("--quick", action="store_true", help="fewer iterations (smoke run)")
-    ap.add_argument("--report-only", action="store_true", help="exit 0 even if over budget")
-    args = ap.parse_args()
-    hw = hardware()
-    print(f"bench/fabric on {hardware_line(hw)}", file=sys.stderr)
-    m = measure(args.quick)
-    r = ratios(m)
-    v = verdicts(r)
-    data = {"hardware": hw, "quick": args.quick, "measurements": m, "ratios": r, "budgets": v}
-    path = write_json("fabric.quick" if args.quick else "fabric", data)
-    if not args.quick:
-        write_section("fabric", render(m, r, v, hw))
-    print(render(m, r, v, hw))
-    print(f"\nwrote {path}" + ("" if args.quick else " and docs/benchmarks.md"), file=sys.stderr)
-    missed = [k for k, val in v.items() if val["checked"] and not val["ok"]]
-    if missed and not args.report_only:
-        print(f"budget missed: {', '.join(missed)}", file=sys.stderr)
-        return 1
-    return 0
+    return run_suite("fabric", measure_with_ratios, lambda m: verdicts(m["ratios"]), render)
+
+
+def measure_with_ratios(quick: bool) -> dict[str, Any]:
+    m = measure(quick)
+    m["ratios"] = ratios(m)
+    return m
 
 
 if __name__ == "__main__":

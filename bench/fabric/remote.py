@@ -3,72 +3,31 @@
 from __future__ import annotations
 
 import asyncio
-import json
 import os
 import struct
-import subprocess
 import sys
 import time
-from collections.abc import AsyncIterator
-from contextlib import asynccontextmanager
 from typing import Any
 
 import anyio
 import zenoh
-from anyio.abc import Process
-from anyio.streams.text import TextReceiveStream
 from rap_schemas import keys
 from rap_sdk import Context, InboxPolicy, Node, Overflow, ZenohConfig, ZenohFabric, run_nodes
 from rap_sdk.testing import free_port
 
+from ..procs import spawn
 from .common import RAW_BLAST, RAW_PING, RAW_PONG, SYSTEM, Blob, raw_session
 
 PEER_TIMEOUT = 60.0
 
 
-class Peer:
-    def __init__(self, proc: Process) -> None:
-        self.proc = proc
-        assert proc.stdout is not None
-        self._lines = TextReceiveStream(proc.stdout)
-        self._buf = ""
-
-    async def line(self) -> str:
-        with anyio.fail_after(PEER_TIMEOUT):
-            while "\n" not in self._buf:
-                self._buf += await self._lines.receive()
-        line, self._buf = self._buf.split("\n", 1)
-        return line
-
-    async def result(self) -> dict[str, Any]:
-        data: dict[str, Any] = json.loads(await self.line())
-        return data
-
-
-@asynccontextmanager
-async def peer(transport: str, role: str, addr: str, n: int = 0) -> AsyncIterator[Peer]:
-    # the peer runs on the same kind of event loop as this process
+def peer(transport: str, role: str, addr: str, n: int = 0) -> Any:
+    """bench.fabric.peer in its own process, on the same kind of event loop as this one."""
     uv = type(asyncio.get_running_loop()).__module__.startswith("uvloop")
-    proc = await anyio.open_process(
+    return spawn(
         [sys.executable, "-m", "bench.fabric.peer", transport, role, addr, str(n)],
-        stdout=subprocess.PIPE,
-        stderr=None,
         env={**os.environ, "BENCH_UVLOOP": "1" if uv else "0"},
     )
-    p = Peer(proc)
-    try:
-        while (await p.line()) != "READY":
-            pass
-        yield p
-    finally:
-        if proc.returncode is None:
-            proc.terminate()
-        with anyio.move_on_after(5):
-            await proc.wait()
-        if proc.returncode is None:
-            proc.kill()
-            await proc.wait()
-        await proc.aclose()
 
 
 # -- rap_sdk -----------------------------------------------------------------------------

@@ -7,23 +7,20 @@ from __future__ import annotations
 import asyncio
 import json
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import AsyncIterator
-from contextlib import asynccontextmanager
 from typing import Any
 
 import anyio
 import redis.asyncio as aioredis
 import zenoh
-from anyio.streams.text import TextReceiveStream
 from rap_schemas import keys
 from rap_sdk import ZenohConfig, ZenohFabric
 from rap_sdk.knowledge import KnowledgeClient
 from rap_sdk.testing import free_port
 
+from ..procs import spawn
 from ..report import (
     hardware_line,
     pct,
@@ -44,28 +41,6 @@ def step(msg: str) -> None:
     print(f"  {msg}", file=sys.stderr, flush=True)
 
 
-@asynccontextmanager
-async def process(args: list[str], ready: str = "READY") -> AsyncIterator[None]:
-    proc = await anyio.open_process(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-    assert proc.stdout is not None
-    seen = ""
-    with anyio.fail_after(30):
-        async for chunk in TextReceiveStream(proc.stdout):
-            seen += chunk
-            if ready in seen:
-                break
-    try:
-        yield
-    finally:
-        proc.terminate()
-        with anyio.move_on_after(5):
-            await proc.wait()
-        if proc.returncode is None:
-            proc.kill()
-            await proc.wait()
-        await proc.aclose()
-
-
 async def timed(n: int, fn: Any) -> list[int]:
     out = []
     for i in range(n):
@@ -81,7 +56,7 @@ async def measure(quick: bool) -> dict[str, Any]:
     port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
     async with ZenohFabric(ZenohConfig(listen=[ep])) as fabric:
-        async with process(
+        async with spawn(
             [
                 sys.executable,
                 "-m",
@@ -172,9 +147,7 @@ class RawQuerier:
         self.session = await anyio.to_thread.run_sync(
             zenoh.open, zenoh.Config.from_json5(json.dumps(conf))
         )
-        self._peer = process(
-            [sys.executable, "-m", "bench.knowledge.peer", f"tcp/127.0.0.1:{lport}"]
-        )
+        self._peer = spawn([sys.executable, "-m", "bench.knowledge.peer", f"tcp/127.0.0.1:{lport}"])
         await self._peer.__aenter__()
         querier = self.session.declare_querier("bench/raw/query")
         while not querier.matching_status.matching:  # noqa: ASYNC110
@@ -211,7 +184,7 @@ async def redis_baselines(n: int) -> dict[str, Any]:
         return {"redis": "redis-server not installed: rows omitted"}
     port = free_port()
     with tempfile.TemporaryDirectory() as d:
-        async with process(
+        async with spawn(
             [
                 binary,
                 "--bind",

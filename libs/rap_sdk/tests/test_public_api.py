@@ -83,7 +83,6 @@ SCHEMAS = {
     "Verdict",
     "by_type",
     "keys",
-    "type_name",
 }
 
 

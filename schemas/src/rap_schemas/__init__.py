@@ -33,7 +33,7 @@ from .lidar import (
     Verdict,
 )
 from .maplek import KnowledgeAccess, Rejection, Stage, StageTrace
-from .message import Message, type_name
+from .message import Message
 
 __all__ = [
     "MESSAGES",
@@ -70,5 +70,4 @@ __all__ = [
     "Verdict",
     "by_type",
     "keys",
-    "type_name",
 ]

@@ -12,7 +12,7 @@ from typing import Any, ClassVar
 
 import msgspec
 
-__all__ = ["Message", "type_name"]
+__all__ = ["Message"]
 
 _TYPE = re.compile(r"[a-z][a-z0-9_]*(\.[A-Za-z][A-Za-z0-9_]*)+/[1-9][0-9]*")
 
@@ -28,14 +28,3 @@ class Message(msgspec.Struct, frozen=True, kw_only=True):
                 f"{cls.__qualname__}.TYPE = {name!r} is not a wire name; "
                 "use 'package.Name/<version>', e.g. 'rap.LaserScan/1'"
             )
-
-
-def type_name(cls: type[msgspec.Struct]) -> str:
-    """The wire name of a message class."""
-    name = getattr(cls, "TYPE", "")
-    if not name:
-        raise TypeError(
-            f"{getattr(cls, '__qualname__', cls)!r} has no wire name: subclass "
-            "rap_schemas.Message and set TYPE = 'package.Name/1'"
-        )
-    return str(name)

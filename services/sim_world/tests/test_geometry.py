@@ -3,8 +3,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pymunk
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from sim_world.geometry import cast_rays, scene_of
 from sim_world.physics import pymunk_ray, static_space
@@ -43,11 +44,19 @@ def test_beyond_range_is_inf_and_inside_a_circle_sees_its_edge() -> None:
 def test_the_vectorised_raycaster_agrees_with_pymunk(x: float, y: float, heading: float) -> None:
     world = load_world(default_world_path("default"))
     scene, space = scene_of(world), static_space(world)
+    assume(not space.point_query((x, y), 0.0, pymunk.ShapeFilter()))  # not inside an obstacle
     angles = heading + np.linspace(-math.pi, math.pi, 90, endpoint=False)
     ours = cast_rays(x, y, angles, scene, 12.0)
     theirs = np.array([pymunk_ray(space, x, y, a, 12.0) for a in angles])
-    inside = np.isfinite(theirs) & (theirs < 1e-6)  # pymunk reports 0 from inside a shape
-    np.testing.assert_allclose(ours[~inside], theirs[~inside], atol=1e-6)
+    # A beam tangent to a circle (within 1e-6) is ill-conditioned: pymunk itself reads
+    # it as a hit at one pose and a pass at another. Those beams are not compared.
+    c = scene.circles
+    along = (c[:, 0] - x) * np.cos(angles)[:, None] + (c[:, 1] - y) * np.sin(angles)[:, None]
+    off = np.abs((c[:, 0] - x) * np.sin(angles)[:, None] - (c[:, 1] - y) * np.cos(angles)[:, None])
+    grazing = ((np.abs(off - c[:, 2]) < 1e-6) & (along > 0)).any(axis=1)
+    compare = ~grazing
+    assert compare.sum() >= 80  # almost every beam is still compared
+    np.testing.assert_allclose(ours[compare], theirs[compare], atol=1e-6)
 
 
 @pytest.mark.parametrize("name", ["default", "corridor", "obstacles_only"])

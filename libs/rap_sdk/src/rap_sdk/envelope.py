@@ -104,6 +104,9 @@ def typed_decoder(msg_type: type[Any] | None) -> Callable[[bytes], TypedEnvelope
     return msgspec.msgpack.Decoder(TypedEnvelope[body]).decode  # type: ignore[valid-type]
 
 
+_ANY_BODY = typed_decoder(None)
+
+
 class OutgoingEnvelope(msgspec.Struct, frozen=True, kw_only=True, omit_defaults=True):
     """What a sender builds: the :class:`~rap_schemas.Envelope` fields in the same order,
     with ``body`` still the message object, so that envelope and body are encoded in one
@@ -143,21 +146,8 @@ class Sealer:
         ctx: dict[str, int] | None = None,
     ) -> tuple[bytes, OutgoingEnvelope]:
         """Seal a typed message: envelope and body are encoded in one pass."""
-        seq = self._seq.get(key, 0)
-        self._seq[key] = seq + 1
-        ts = self._now()
-        env = OutgoingEnvelope(
-            uid=new_uid(ts),
-            ts=ts,
-            source=self.source,
-            seq=seq,
-            type=_EMPTY if message is None else message.TYPE,
-            body=message,
-            cycle=cycle,
-            cause=cause,
-            ctx=ctx or {},
-        )
-        return _encode(env), env
+        tname = _EMPTY if message is None else message.TYPE
+        return self._seal(key, tname, message, cycle, cause, ctx)
 
     def seal(
         self,
@@ -168,17 +158,30 @@ class Sealer:
         cycle: bytes | None = None,
         cause: bytes | None = None,
         ctx: dict[str, int] | None = None,
-    ) -> tuple[bytes, Envelope]:
+    ) -> tuple[bytes, OutgoingEnvelope]:
+        """Seal a body already encoded as msgpack, under wire type ``type_name`` (for
+        relays and tests that need a body of their own making)."""
+        return self._seal(key, type_name, msgspec.Raw(body), cycle, cause, ctx)
+
+    def _seal(
+        self,
+        key: str,
+        type_name: str,
+        body: Any,
+        cycle: bytes | None,
+        cause: bytes | None,
+        ctx: dict[str, int] | None,
+    ) -> tuple[bytes, OutgoingEnvelope]:
         seq = self._seq.get(key, 0)
         self._seq[key] = seq + 1
         ts = self._now()
-        env = Envelope(
+        env = OutgoingEnvelope(
             uid=new_uid(ts),
             ts=ts,
             source=self.source,
             seq=seq,
             type=type_name,
-            body=msgspec.Raw(body),
+            body=body,
             cycle=cycle,
             cause=cause,
             ctx=ctx or {},
@@ -253,20 +256,10 @@ class Opener:
         except msgspec.DecodeError as exc:
             raise RejectedSample(f"undecodable envelope ({len(payload)} bytes): {exc}") from None
 
-    def open(self, key: str, payload: bytes) -> Envelope | None:
-        """The envelope, or ``None`` for a duplicate; raises :class:`RejectedSample`."""
-        try:
-            env = self._decode(payload)
-        except msgspec.ValidationError as exc:
-            raise RejectedSample(f"invalid envelope: {exc}") from None
-        except msgspec.DecodeError as exc:
-            raise RejectedSample(f"undecodable envelope ({len(payload)} bytes): {exc}") from None
-        if len(env.uid) != 16 or env.seq < 0:
-            raise RejectedSample(
-                f"invalid envelope: uid must be 16 bytes and seq >= 0, got "
-                f"{len(env.uid)} bytes and seq={env.seq}"
-            )
-        return env if self._track(env.source, key, env.seq, env.ts) else None
+    def open(self, key: str, payload: bytes) -> TypedEnvelope[msgspec.Raw] | None:
+        """The envelope with its body left raw, or ``None`` for a duplicate; raises
+        :class:`RejectedSample`."""
+        return self.open_typed(key, payload, _ANY_BODY, None)
 
     def _track(self, source: str, key: str, seq: int, ts: int) -> bool:
         """Within one sender instance seq and ts grow together. A lower seq with a

@@ -222,30 +222,28 @@ class KnowledgeClient:
         Without ``durable`` the write goes out on the write stream and returns at once.
         ``durable=True`` waits for the service's acknowledgement; ``expect`` (0: the key
         must not exist) makes it a compare-and-set, always through the service."""
-        self._check_key(key)
-        rec = KbRecord(
-            key=key,
-            version=self.clock.next(),
-            ts=time.time_ns(),
-            writer=self.writer,
-            value=msgspec.Raw(_encode(value)),
+        return await self._submit(
+            self._record(key, msgspec.Raw(_encode(value)), False), durable, expect
         )
-        return await self._submit(rec, durable=durable or expect is not None, expect=expect)
 
     async def delete(self, key: str, *, durable: bool = False, expect: int | None = None) -> int:
+        return await self._submit(self._record(key, _NIL, True), durable, expect)
+
+    def _record(self, key: str, value: msgspec.Raw, deleted: bool) -> KbRecord:
         self._check_key(key)
-        rec = KbRecord(
+        return KbRecord(
             key=key,
             version=self.clock.next(),
             ts=time.time_ns(),
             writer=self.writer,
-            value=_NIL,
-            deleted=True,
+            value=value,
+            deleted=deleted,
         )
-        return await self._submit(rec, durable=durable or expect is not None, expect=expect)
 
-    async def _submit(self, rec: KbRecord, *, durable: bool, expect: int | None) -> int:
-        if durable:
+    async def _submit(self, rec: KbRecord, durable: bool, expect: int | None) -> int:
+        """Durable (or compare-and-set, ``expect`` given): through the service and
+        acknowledged; else out on the write stream."""
+        if durable or expect is not None:
             reply = await self._ask(rec.key, KbPut(record=rec, expect=expect))
             if reply.version != rec.version:  # the service moved it past the current one
                 rec = msgspec.structs.replace(rec, version=reply.version)
