@@ -1,0 +1,1 @@
+"""The lidar-occlusion case study as RAP MAPLE-K nodes."""

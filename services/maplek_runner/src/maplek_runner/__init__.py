@@ -1,0 +1,1 @@
+"""Hosts the MAPLE-K components that a deployment plan maps to one compute node."""
