@@ -44,6 +44,7 @@ SDK = {
     "SystemClock",
     "ZenohConfig",
     "ZenohFabric",
+    "await_alive",
     "run",
     "run_nodes",
     "serve",
@@ -83,6 +84,14 @@ SCHEMAS = {
     "Verdict",
     "by_type",
     "keys",
+    "ComponentSpec",
+    "ComputeNode",
+    "DeploymentPlan",
+    "KnowledgeSpec",
+    "PlanDocument",
+    "PlanError",
+    "load_plan",
+    "parse_plan",
 }
 
 
@@ -94,7 +103,16 @@ def test_all_is_the_public_surface(module: object, expected: set[str]) -> None:
         assert getattr(module, name) is not None
 
 
-@pytest.mark.parametrize("module", ["rap_sdk.testing", "rap_sdk.fabric", "rap_schemas.keys"])
+@pytest.mark.parametrize(
+    "module",
+    [
+        "rap_sdk.testing",
+        "rap_sdk.fabric",
+        "rap_schemas.keys",
+        "rap_schemas.plan",
+        "rap_schemas.yamlconf",
+    ],
+)
 def test_submodules_export_what_they_name(module: str) -> None:
     mod = importlib.import_module(module)
     for name in mod.__all__:

@@ -1,4 +1,5 @@
-"""rap_schemas: every wire message, the envelope and the key space of RAP."""
+"""rap_schemas: every wire message, the envelope, the key space and the deployment plan
+of RAP (YAML files with positioned errors: :mod:`rap_schemas.yamlconf`)."""
 
 from . import keys
 from .catalog import MESSAGES, by_type
@@ -34,10 +35,23 @@ from .lidar import (
 )
 from .maplek import KnowledgeAccess, Rejection, Stage, StageTrace
 from .message import Message
+from .plan import (
+    ComponentSpec,
+    ComputeNode,
+    DeploymentPlan,
+    KnowledgeSpec,
+    PlanDocument,
+    PlanError,
+    load_plan,
+    parse_plan,
+)
 
 __all__ = [
     "MESSAGES",
     "MODELS_PREFIX",
+    "ComponentSpec",
+    "ComputeNode",
+    "DeploymentPlan",
     "Empty",
     "Envelope",
     "KbDelete",
@@ -49,6 +63,7 @@ __all__ = [
     "KbReply",
     "KbRequest",
     "KnowledgeAccess",
+    "KnowledgeSpec",
     "LaserScan",
     "LidarMask",
     "Message",
@@ -58,6 +73,8 @@ __all__ = [
     "ModelPin",
     "ModelPut",
     "Odometry",
+    "PlanDocument",
+    "PlanError",
     "PlanProposal",
     "Pose2D",
     "Rejection",
@@ -70,4 +87,6 @@ __all__ = [
     "Verdict",
     "by_type",
     "keys",
+    "load_plan",
+    "parse_plan",
 ]

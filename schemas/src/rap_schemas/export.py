@@ -1,4 +1,5 @@
-"""JSON Schema export of every wire message and the envelope (``make schemas``)."""
+"""JSON Schema export of every wire message, the envelope and the deployment plan
+(``make schemas``)."""
 
 from __future__ import annotations
 
@@ -11,14 +12,18 @@ import msgspec
 from .catalog import MESSAGES
 from .envelope import Envelope
 from .knowledge import KbReply, KbRequest
+from .plan import DeploymentPlan
 
-__all__ = ["render", "write"]
+__all__ = ["PLAN_SCHEMA", "render", "write"]
+
+PLAN_SCHEMA = "rap.DeploymentPlan.schema.json"
+"""The export's file for deployment plans (a file format, not a versioned wire message)."""
 
 
 def _file_name(type_name: str) -> str:
-    # "rap.LaserScan/1" -> "rap.LaserScan.v1.schema.json"
-    name, version = type_name.split("/")
-    return f"{name}.v{version}.schema.json"
+    # "rap.LaserScan/1" -> "rap.LaserScan.v1.schema.json"; "rap.X" -> "rap.X.schema.json"
+    name, _, version = type_name.partition("/")
+    return f"{name}.v{version}.schema.json" if version else f"{name}.schema.json"
 
 
 def render() -> dict[str, str]:
@@ -28,6 +33,7 @@ def render() -> dict[str, str]:
         ("rap.Envelope/1", Envelope),
         ("rap.KbRequest/1", KbRequest),
         ("rap.KbReply/1", KbReply),
+        ("rap.DeploymentPlan", DeploymentPlan),
     ]
     entries += [(m.TYPE, m) for m in MESSAGES]
     for type_name, cls in entries:

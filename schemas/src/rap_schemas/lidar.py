@@ -123,7 +123,10 @@ class PlanProposal(Message, frozen=True):
 
 
 class Verdict(Message, frozen=True, omit_defaults=True):
-    """The Legitimate stage's decision on one plan."""
+    """The Legitimate stage's decision on one plan.
+
+    An approving verdict carries the proposal it approves: the execute side acts on
+    exactly that plan, never on whatever a knowledge key holds by then."""
 
     TYPE = "rap.Verdict/1"
 
@@ -132,3 +135,4 @@ class Verdict(Message, frozen=True, omit_defaults=True):
     legitimator: str
     ts: int
     reason: str = ""
+    proposal: PlanProposal | None = None

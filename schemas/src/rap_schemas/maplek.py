@@ -5,6 +5,8 @@ from __future__ import annotations
 import enum
 from typing import Literal
 
+import msgspec
+
 from .message import Message
 
 __all__ = ["KnowledgeAccess", "Rejection", "Stage", "StageTrace"]
@@ -37,6 +39,9 @@ class StageTrace(Message, frozen=True, omit_defaults=True):
     """Handler run time; set on ``end``."""
     ok: bool = True
     error: str = ""
+    sent: list[str] = msgspec.field(default_factory=list)
+    """On ``end``: the keys of what the handler emitted or published, in order (a
+    cycle tracker expects one handler call per subscriber of each)."""
 
 
 class KnowledgeAccess(Message, frozen=True, omit_defaults=True):

@@ -37,6 +37,7 @@ from .runtime import (
     NodeGroup,
     NodeRuntime,
     NodeStats,
+    await_alive,
     run_nodes,
     serve,
 )
@@ -76,6 +77,7 @@ __all__ = [
     "SystemClock",
     "ZenohConfig",
     "ZenohFabric",
+    "await_alive",
     "run",
     "run_nodes",
     "serve",

@@ -36,7 +36,7 @@ from .fabric import Fabric, Sample, Subscription
 from .knowledge import _MISSING, KnowledgeClient
 from .node import Node, Route
 
-__all__ = ["Context", "NodeGroup", "NodeRuntime", "NodeStats", "run_nodes"]
+__all__ = ["Context", "NodeGroup", "NodeRuntime", "NodeStats", "await_alive", "run_nodes"]
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +59,7 @@ class NodeStats:
 class Context:
     """What a handler gets: the triggering envelope and ways to act in its cycle."""
 
-    __slots__ = ("_kb", "_rt", "cycle", "envelope", "key", "message", "written")
+    __slots__ = ("_kb", "_rt", "cycle", "envelope", "key", "message", "sent", "written")
 
     def __init__(
         self, rt: NodeRuntime, key: str, envelope: TypedEnvelope[Any], message: Any
@@ -71,6 +71,8 @@ class Context:
         self.cycle: bytes = envelope.cycle or envelope.uid
         self.written: dict[str, int] | None = None
         """Knowledge versions this handler wrote: carried in what it emits."""
+        self.sent: list[str] | None = None
+        """Keys this handler emitted or published on, in order (for the end record)."""
         self._kb: ContextKnowledge | None = None
 
     @property
@@ -98,10 +100,22 @@ class Context:
     def config(self) -> Any:
         return self._rt.node.config
 
+    @property
+    def clock(self) -> Clock:
+        """The runtime's clock (wall time, ns): stamp plans, judge freshness."""
+        return self._rt.clock
+
+    def _sent(self, key: str) -> None:
+        if self.sent is None:
+            self.sent = [key]
+        else:
+            self.sent.append(key)
+
     async def emit(self, name: str, message: Message | None = None) -> OutgoingEnvelope:
         """Emit event ``name`` in this cycle, caused by the triggering envelope."""
         rt = self._rt
         key = rt.event_keys.get(name) or rt.build_key(keys.event, name, rt.event_keys)
+        self._sent(key)
         return await rt.send(
             key, message, cycle=self.cycle, cause=self.envelope.uid, ctx=self._ctx_out()
         )
@@ -110,6 +124,7 @@ class Context:
         """Publish on data topic ``topic`` in this cycle."""
         rt = self._rt
         key = rt.data_keys.get(topic) or rt.build_key(keys.data, topic, rt.data_keys)
+        self._sent(key)
         return await rt.send(
             key, message, cycle=self.cycle, cause=self.envelope.uid, ctx=self._ctx_out()
         )
@@ -149,10 +164,19 @@ class ContextKnowledge:
         await ctx._rt.trace_access("read", key, self.client.known_version(key), ctx.cycle)
         return value
 
+    def _after_trigger(self) -> None:
+        """A write in this handler happens after every write its trigger carries: the
+        clock moves past them, so the new version orders after theirs (else a writer
+        whose clock lags would lose to the very write that caused its own)."""
+        versions = self._ctx.envelope.ctx
+        if versions:
+            self.client.clock.observe(max(versions.values()))
+
     async def write(
         self, key: str, value: Any, *, durable: bool = False, expect: int | None = None
     ) -> int:
         ctx = self._ctx
+        self._after_trigger()
         version = await self.client.write(key, value, durable=durable, expect=expect)
         if ctx.written is None:
             ctx.written = {}
@@ -162,6 +186,7 @@ class ContextKnowledge:
 
     async def delete(self, key: str, *, durable: bool = False, expect: int | None = None) -> int:
         ctx = self._ctx
+        self._after_trigger()
         version = await self.client.delete(key, durable=durable, expect=expect)
         if ctx.written is None:
             ctx.written = {}
@@ -262,6 +287,7 @@ class NodeRuntime:
         ts: int,
         duration: int = 0,
         error: str = "",
+        sent: list[str] | None = None,
     ) -> None:
         rec = StageTrace(
             node=self.node.name,
@@ -275,6 +301,7 @@ class NodeRuntime:
             duration_ns=duration,
             ok=not error,
             error=error,
+            sent=sent or [],
         )
         payload, _ = self.sealer.seal_message(self._trace_key, rec, cycle=cycle, cause=env.uid)
         await self._publish_record(self._trace_key, payload)
@@ -400,7 +427,7 @@ class NodeRuntime:
             self.stats.handled += 1
         if traced:
             end = clock.time_ns()
-            await self._trace(route, "end", ctx.key, env, cycle, end, end - start, error)
+            await self._trace(route, "end", ctx.key, env, cycle, end, end - start, error, ctx.sent)
 
     # -- lifecycle ---------------------------------------------------------------------
 
@@ -507,6 +534,22 @@ async def run_nodes(
         finally:
             group.stop()
             tg.cancel_scope.deadline = anyio.current_time() + grace
+
+
+async def await_alive(fabric: Fabric, system: str, names: set[str], timeout: float) -> None:
+    """Wait until a liveliness token is up for each node in ``names`` (a node declares
+    its token after its subscriptions: once seen, the node is reachable). Raises
+    ``TimeoutError`` naming the nodes still missing after ``timeout`` s."""
+    missing = set(names)
+    with fabric.watch_liveliness(keys.pattern(system, keys.Kind.ALIVE)) as watch:
+        try:
+            with anyio.fail_after(timeout):
+                while missing:
+                    change = await watch.get()
+                    if change.alive:
+                        missing.discard(keys.parse(change.key).name)
+        except TimeoutError:
+            raise TimeoutError(f"nodes {sorted(missing)} not alive within {timeout} s") from None
 
 
 async def serve(nodes: Sequence[Node], fabric: Fabric, *, system: str, grace: float = 5.0) -> None:

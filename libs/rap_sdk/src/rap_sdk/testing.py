@@ -33,7 +33,7 @@ from .errors import LifecycleError
 from .fabric import Fabric, MemoryBus, MemoryFabric, ZenohConfig, ZenohFabric
 from .inbox import InboxPolicy, Overflow
 from .node import Node
-from .runtime import NodeGroup, run_nodes
+from .runtime import NodeGroup, await_alive, run_nodes
 
 __all__ = ["REQUIRE_SERVICES", "Harness", "Record", "free_port", "require_binary"]
 
@@ -41,6 +41,7 @@ REQUIRE_SERVICES = "RAP_REQUIRE_SERVICES"
 """Set to 1 (CI does) and a test whose server is missing fails instead of skipping."""
 
 M = TypeVar("M", bound=Message)
+T = TypeVar("T")
 
 _open = msgspec.msgpack.Decoder(Envelope).decode
 
@@ -82,19 +83,6 @@ class Record:
         if self.envelope is None:
             raise ValueError(f"sample on {self.key} is not an envelope")
         return msgspec.msgpack.decode(self.envelope.body, type=cls)
-
-
-async def _await_alive(fabric: Fabric, system: str, names: set[str], timeout: float) -> None:
-    missing = set(names)
-    with fabric.watch_liveliness(keys.pattern(system, keys.Kind.ALIVE)) as watch:
-        try:
-            with anyio.fail_after(timeout):
-                while missing:
-                    change = await watch.get()
-                    if change.alive:
-                        missing.discard(keys.parse(change.key).name)
-        except TimeoutError:
-            raise TimeoutError(f"nodes {sorted(missing)} not alive within {timeout} s") from None
 
 
 class Harness:
@@ -182,6 +170,11 @@ class Harness:
 
     # -- running nodes -----------------------------------------------------------------
 
+    async def hold(self, cm: contextlib.AbstractAsyncContextManager[T]) -> T:
+        """Enter ``cm`` (a service, say) for the harness's lifetime; it exits, in reverse
+        order with the nodes started, when the harness does."""
+        return await self._stack.enter_async_context(cm)
+
     async def start(self, *nodes: Node) -> NodeGroup:
         """Run ``nodes``; when this returns they are subscribed and reachable."""
         if not self.isolate:
@@ -201,7 +194,7 @@ class Harness:
         # linked to it and knows its routes. Nodes reach the harness through its recorder.
         names = {rt.node.name for rt in runtimes}
         for fabric in [self.fabric, *(rt.fabric for rt in runtimes)]:
-            await _await_alive(fabric, self.system, names, self.timeout)
+            await await_alive(fabric, self.system, names, self.timeout)
         for rt in runtimes:
             await rt.fabric.wait_matched(
                 keys.trace(self.system, rt.node.name), timeout=self.timeout

@@ -19,12 +19,11 @@ Angles are radians, counter-clockwise; occlusion angles are in the robot's frame
 from __future__ import annotations
 
 import math
-import re
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal
 
 import msgspec
-import yaml
+from rap_schemas.yamlconf import YamlDocument, YamlError, parse_yaml
 
 __all__ = [
     "Arc",
@@ -110,6 +109,10 @@ class RobotSpec(_S, frozen=True, kw_only=True):
     max_linear: Positive = 0.31
     max_angular: Positive = 1.9
     loop_route: bool = False
+    obstacle_memory: NonNegative = 10.0
+    """Seconds the navigator remembers obstacles it saw within 2.5 m (a decaying local
+    costmap, as real navigation stacks keep): what a spin shows stays known for a while.
+    0: react to the current scan only."""
 
 
 class Arc(_S, frozen=True):
@@ -144,85 +147,41 @@ class WorldSpec(_S, frozen=True, kw_only=True):
     physics_hz: Positive = 50.0
 
 
-class WorldError(ValueError):
+class WorldError(YamlError):
     """A world file that cannot be used; the message starts with ``file:line:col``."""
-
-
-_PATH = re.compile(r"at `\$(.*?)`")
-_PART = re.compile(r"\.([A-Za-z_][A-Za-z0-9_]*)|\[(\d+)\]")
-
-
-def _locate(node: Any, path: str) -> Any:
-    """The YAML node at a msgspec ``$.a[0].b`` path (as deep as it exists)."""
-    for name, index in _PART.findall(path):
-        if isinstance(node, yaml.MappingNode) and name:
-            nxt = next((v for k, v in node.value if getattr(k, "value", None) == name), None)
-        elif isinstance(node, yaml.SequenceNode) and index:
-            i = int(index)
-            nxt = node.value[i] if i < len(node.value) else None
-        else:
-            nxt = None
-        if nxt is None:
-            break
-        node = nxt
-    return node
 
 
 def parse_world(text: str, source: str = "<world>") -> WorldSpec:
     """Validate a world; errors read ``source:line:col: what - at `$.path``."""
-    try:
-        root = yaml.compose(text, Loader=yaml.SafeLoader)
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f"{source}:{mark.line + 1}:{mark.column + 1}" if mark else source
-        raise WorldError(f"{where}: not valid YAML: {getattr(exc, 'problem', exc)}") from None
-    if root is None:
-        raise WorldError(f"{source}: the world file is empty")
-    try:
-        world = msgspec.convert(data, WorldSpec, strict=False)
-    except msgspec.ValidationError as exc:
-        match = _PATH.search(str(exc))
-        node = _locate(root, match.group(1)) if match else root
-        mark = node.start_mark
-        raise WorldError(f"{source}:{mark.line + 1}:{mark.column + 1}: {exc}") from None
-    _check_references(world, root, source)
+    doc = parse_yaml(text, source, what="world file", error=WorldError)
+    world = doc.convert(WorldSpec, strict=False)
+    _check_references(world, doc)
     return world
 
 
-def _check_references(world: WorldSpec, root: Any, source: str) -> None:
+def _check_references(world: WorldSpec, doc: YamlDocument) -> None:
     names = [r.name for r in world.robots]
     for i, robot in enumerate(world.robots):
         if robot.name in names[:i]:  # point at the second use
-            node = _locate(root, f".robots[{i}].name")
-            raise WorldError(
-                f"{source}:{node.start_mark.line + 1}: robot name "
-                f"{robot.name!r} is used twice; names must be unique"
+            raise doc.error(
+                ("robots", i, "name"),
+                f"robot name {robot.name!r} is used twice; names must be unique",
             )
     for i, occ in enumerate(world.occlusions):
         if occ.robot not in names:
-            node = _locate(root, f".occlusions[{i}].robot")
-            raise WorldError(
-                f"{source}:{node.start_mark.line + 1}: occlusion names robot "
-                f"{occ.robot!r}, but the robots are {names}"
+            raise doc.error(
+                ("occlusions", i, "robot"),
+                f"occlusion names robot {occ.robot!r}, but the robots are {names}",
             )
         if occ.t_end <= occ.t_start:
-            node = _locate(root, f".occlusions[{i}]")
-            raise WorldError(
-                f"{source}:{node.start_mark.line + 1}: occlusion ends "
-                f"(t_end={occ.t_end}) before it starts (t_start={occ.t_start})"
+            raise doc.error(
+                ("occlusions", i),
+                f"occlusion ends (t_end={occ.t_end}) before it starts (t_start={occ.t_start})",
             )
         if occ.mode == "sector" and occ.width <= 0:
-            node = _locate(root, f".occlusions[{i}]")
-            raise WorldError(
-                f"{source}:{node.start_mark.line + 1}: a sector occlusion "
-                "needs a width > 0 (radians)"
-            )
+            raise doc.error(("occlusions", i), "a sector occlusion needs a width > 0 (radians)")
         if occ.mode == "arcs" and not occ.arcs:
-            node = _locate(root, f".occlusions[{i}]")
-            raise WorldError(
-                f"{source}:{node.start_mark.line + 1}: an arcs occlusion needs at least one arc"
-            )
+            raise doc.error(("occlusions", i), "an arcs occlusion needs at least one arc")
 
 
 def load_world(path: str | Path) -> WorldSpec:

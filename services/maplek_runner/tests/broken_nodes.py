@@ -1,0 +1,3 @@
+"""A module whose import fails, for the loader's error test."""
+
+raise RuntimeError("this module is broken on purpose")
