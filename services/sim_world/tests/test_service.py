@@ -18,7 +18,7 @@ async def test_scans_go_out_and_plans_come_in(fabric: str) -> None:
     sim = Simulation(load_world(default_world_path("default")))
     truth: list[object] = []
     async with Harness(system="s", fabric=fabric) as h:  # type: ignore[arg-type]
-        service = SimService(sim, h.fabric, system="s", on_scan=truth.append)
+        service = SimService(sim, h.fabric, system="s", on_scan=lambda ev, env: truth.append(ev))
         async with anyio.create_task_group() as tg:
             await tg.start(service.run, 2.0)
             plan = SpinPlan(commands=[SpinCommand(omega=1.0, duration=1.0)], period=8.0)

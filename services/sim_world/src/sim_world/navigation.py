@@ -8,7 +8,7 @@ that makes the robot look into the blocked sector helps.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
@@ -20,22 +20,52 @@ __all__ = ["Navigator"]
 
 REACHED = 0.25
 """Metres from a waypoint that count as reaching it."""
-SLOW, STOP = 0.55, 0.30
-"""Obstacle distance ahead (m) below which the robot slows, and stops to turn away."""
-FRONT = math.radians(35)
+LOOKAHEAD = 0.9
+"""Metres ahead a heading must be clear of obstacles to be taken."""
+MARGIN = 0.08
+"""Clearance (m) kept beyond the robot's radius."""
+STOP = 0.25
+"""Free distance (m) along the chosen heading below which the robot turns in place."""
+CANDIDATES = 72
+"""Headings considered, evenly around the robot (5 degrees apart)."""
 
 
 @dataclass
 class Navigator:
+    """Go to the waypoint by the free heading closest to its direction.
+
+    A heading is free when no lidar return lies in the corridor of the robot's width
+    (plus a margin) up to ``LOOKAHEAD`` m along it. The free headings are worked out once
+    per scan, in the world frame; between scans the robot steers by them."""
+
     spec: RobotSpec
     index: int = 0
     laps: int = 0
+    _ranges: npt.NDArray[np.float64] | None = field(default=None, repr=False)
+    _headings: npt.NDArray[np.float64] = field(default_factory=lambda: np.zeros(0), repr=False)
+    _free: npt.NDArray[np.float64] = field(default_factory=lambda: np.zeros(0), repr=False)
+    """Per candidate world heading: metres free along it (capped at ``LOOKAHEAD``)."""
 
     @property
     def done(self) -> bool:
         return not self.spec.route or (
             self.index >= len(self.spec.route) and not self.spec.loop_route
         )
+
+    def _update(
+        self, pose: Pose2, angles: npt.NDArray[np.float64], ranges: npt.NDArray[np.float64]
+    ) -> None:
+        self._ranges = ranges
+        cand = np.linspace(-math.pi, math.pi, CANDIDATES, endpoint=False)
+        hit = np.isfinite(ranges)
+        r, a = ranges[hit], angles[hit]
+        rel = a[None, :] - cand[:, None]
+        along = r[None, :] * np.cos(rel)
+        across = np.abs(r[None, :] * np.sin(rel))
+        blocking = (across < self.spec.radius + MARGIN) & (along > 0) & (along < LOOKAHEAD)
+        free = np.where(blocking, along, LOOKAHEAD).min(axis=1) if r.size else None
+        self._free = free if free is not None else np.full(CANDIDATES, LOOKAHEAD)
+        self._headings = pose.theta + cand
 
     def command(
         self, pose: Pose2, angles: npt.NDArray[np.float64], ranges: npt.NDArray[np.float64] | None
@@ -51,20 +81,30 @@ class Navigator:
             if self.spec.loop_route and self.index % len(route) == 0:
                 self.laps += 1
             return self.command(pose, angles, ranges)
-        err = wrap(math.atan2(dy, dx) - pose.theta)
+        goal = math.atan2(dy, dx)
+        heading, room = goal, LOOKAHEAD
+        if ranges is not None:
+            if ranges is not self._ranges:
+                self._update(pose, angles, ranges)
+            dev = np.abs(np.mod(self._headings - goal + math.pi, 2 * math.pi) - math.pi)
+            open_ = self._free >= min(LOOKAHEAD, math.hypot(dx, dy))
+            if open_.any():
+                i = int(np.argmin(np.where(open_, dev, np.inf)))
+            else:
+                i = int(np.argmax(self._free - 0.01 * dev))
+            heading, room = float(self._headings[i]), float(self._free[i])
+        err = wrap(heading - pose.theta)
         w = 2.5 * err
         v = self.spec.max_linear * max(0.0, math.cos(err)) ** 2
-        if ranges is not None:
-            front = np.abs(angles) < FRONT
-            ahead = float(np.min(ranges[front])) if front.any() else math.inf
-            if ahead < SLOW:
-                left = ranges[(angles > FRONT) & (angles < math.pi / 2)]
-                right = ranges[(angles < -FRONT) & (angles > -math.pi / 2)]
-                turn = 1.0 if _space(left) >= _space(right) else -1.0
-                w = turn * self.spec.max_angular * 0.8
-                v = 0.0 if ahead < STOP else v * (ahead - STOP) / (SLOW - STOP)
+        if room < STOP:
+            v = 0.0
+        ahead = self._free_ahead(pose)
+        if ahead < LOOKAHEAD:
+            v *= max(0.0, (ahead - 0.05) / LOOKAHEAD)
         return v, w
 
-
-def _space(ranges: npt.NDArray[np.float64]) -> float:
-    return float(np.mean(np.minimum(ranges, 5.0))) if ranges.size else 0.0
+    def _free_ahead(self, pose: Pose2) -> float:
+        if self._free.size == 0:
+            return LOOKAHEAD
+        dev = np.abs(np.mod(self._headings - pose.theta + math.pi, 2 * math.pi) - math.pi)
+        return float(self._free[int(np.argmin(dev))])

@@ -14,6 +14,12 @@ evaluation code; it is never published on the robot's topics.
 Clocks: lockstep (``realtime_factor=None``) steps as fast as the host allows, yielding
 to the event loop between steps so that inputs are applied at the sim time they
 arrive; real time sleeps to keep sim time at ``realtime_factor`` x wall time.
+
+Lockstep with a loop: given ``sync`` (a :class:`~rap_sdk.cycles.CycleTracker` of the
+loop's nodes and this service's own node), after each scan the simulation waits until
+the cycle that scan started is over (every handler it caused has ended, including this
+service's own handling of a plan), so that the loop's answers land at the sim time of
+the scan that caused them, whatever the host's speed: a deterministic run.
 """
 
 from __future__ import annotations
@@ -26,7 +32,9 @@ import anyio
 import anyio.lowlevel
 from anyio.abc import TaskStatus
 from rap_schemas import LaserScan, SimTime, SpinPlan, Twist, keys
-from rap_sdk import Context, Fabric, InboxPolicy, Node, NodeRuntime, Overflow
+from rap_sdk import Context, Fabric, InboxPolicy, Node, NodeRuntime, OutgoingEnvelope, Overflow
+from rap_sdk.cycles import CycleTracker
+from rap_sdk.envelope import TypedEnvelope
 
 from .sim import ScanEvent, Simulation
 from .viz import RerunLog
@@ -48,15 +56,25 @@ class SimService:
         *,
         system: str,
         realtime_factor: float | None = None,
-        on_scan: Callable[[ScanEvent], None] | None = None,
+        on_scan: Callable[[ScanEvent, OutgoingEnvelope], None] | None = None,
+        on_plan: Callable[[str, SpinPlan, TypedEnvelope[SpinPlan]], None] | None = None,
         rerun: RerunLog | None = None,
+        sync: CycleTracker | None = None,
+        sync_timeout: float = 2.0,
     ) -> None:
+        """``on_scan(event, envelope)`` sees each scan published (with ground truth);
+        ``on_plan(robot, plan, envelope)`` each plan applied. ``sync``: lockstep with a
+        loop (see the module docstring); a cycle not over within ``sync_timeout`` s is
+        counted in ``sync.timeouts`` and the simulation goes on."""
         self.sim = sim
         self.fabric = fabric
         self.system = system
         self.realtime_factor = realtime_factor
         self.on_scan = on_scan
         self.rerun = rerun
+        self.on_plan = on_plan
+        self.sync = sync
+        self.sync_timeout = sync_timeout
         self.node = Node(NODE)
         for name in sim.robots:
             self._inputs(name)
@@ -78,6 +96,8 @@ class SimService:
                 )
                 return
             self.sim.set_plan(robot, p)
+            if self.on_plan is not None:
+                self.on_plan(robot, p, ctx.envelope)
             if self.rerun is not None:
                 self.rerun.plan(robot, self.sim.t, p)
 
@@ -101,13 +121,18 @@ class SimService:
             t_end = math.inf if duration is None else sim.t + duration
             t0 = sim.t
             clock_key = keys.data(self.system, "clock")
+            sync = self.sync if self.realtime_factor is None else None
             while sim.t + 1e-9 < t_end:
-                for ev in sim.step():
-                    await self._publish(rt, ev)
+                events = sim.step()
+                cycles = [await self._publish(rt, ev) for ev in events]
+                if events:
                     await rt.send(
                         clock_key,
                         SimTime(t=round(sim.t * 1e9), realtime_factor=self.realtime_factor or 0.0),
                     )
+                if sync is not None:
+                    for cycle in cycles:
+                        await sync.wait(cycle, self.sync_timeout)
                 if self.realtime_factor is None:
                     await anyio.lowlevel.checkpoint()  # let inputs in: they apply at this sim time
                 else:
@@ -115,11 +140,17 @@ class SimService:
                     await anyio.sleep(max(0.0, due - anyio.current_time()))  # pacing
             rt.stop()
 
-    async def _publish(self, rt: NodeRuntime, ev: ScanEvent) -> None:
+    async def _publish(self, rt: NodeRuntime, ev: ScanEvent) -> bytes:
+        """Publish one scan (and odometry); returns the cycle the scan starts."""
         scan: LaserScan = ev.scan
-        await rt.send(keys.data(self.system, f"{ev.robot}/scan"), scan)
-        await rt.send(keys.data(self.system, f"{ev.robot}/odom"), self.sim.odometry(ev.robot))
+        key = keys.data(self.system, f"{ev.robot}/scan")
+        env = await rt.send(key, scan)
+        if self.sync is not None:
+            self.sync.expect(env.uid, key)
+        odom_key = keys.data(self.system, f"{ev.robot}/odom")
+        await rt.send(odom_key, self.sim.odometry(ev.robot), cycle=env.uid, cause=env.uid)
         if self.on_scan is not None:
-            self.on_scan(ev)
+            self.on_scan(ev, env)
         if self.rerun is not None:
             self.rerun.scan(self.sim, ev)
+        return env.uid

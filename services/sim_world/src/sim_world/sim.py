@@ -12,6 +12,7 @@ output.
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -33,6 +34,8 @@ ROBOT = 2
 MASS = 3.3  # kg, a TurtleBot 4
 DRIVE_FORCE = 50.0  # N the wheels can push with
 DRIVE_TORQUE = 5.0  # N m
+MEMORY_RANGE = 2.5
+"""Metres within which seen obstacle points are remembered for navigation."""
 
 
 @dataclass
@@ -49,6 +52,9 @@ class Robot:
     override: tuple[float, float, float] | None = None
     """(v, w, until): a plain velocity command in force until sim time ``until``."""
     last_ranges: npt.NDArray[np.float64] | None = None
+    """What navigation sees: the last scan, with remembered obstacles folded in."""
+    memory: deque[tuple[float, npt.NDArray[np.float64]]] = field(default_factory=deque)
+    """(time, world-frame points) of recent scans' near returns."""
     collisions: int = 0
     distance: float = 0.0
     v: float = 0.0
@@ -191,7 +197,7 @@ class Simulation:
             self.world.occlusions, name, self.t, self.beam_angles, self.world.seed
         )
         ranges[occluded] = np.inf
-        r.last_ranges = ranges
+        r.last_ranges = self._remember(r, pose, ranges)
         scan = LaserScan(
             stamp=round(self.t * 1e9),
             frame_id=f"{name}/base_link",
@@ -203,6 +209,38 @@ class Simulation:
             scan_time=self.scan_period,
         )
         return ScanEvent(name, self.t, scan, occluded)
+
+    def _remember(
+        self, r: Robot, pose: Pose2, ranges: npt.NDArray[np.float64]
+    ) -> npt.NDArray[np.float64]:
+        """Fold the obstacles seen in the last ``obstacle_memory`` s into ``ranges``."""
+        horizon = r.spec.obstacle_memory
+        if horizon <= 0:
+            return ranges
+        angles = pose.theta + self.beam_angles
+        near = ranges < MEMORY_RANGE
+        d = ranges[near]
+        pts = np.column_stack(
+            (pose.x + d * np.cos(angles[near]), pose.y + d * np.sin(angles[near]))
+        )
+        mem = r.memory
+        while mem and mem[0][0] < self.t - horizon:
+            mem.popleft()
+        seen = [p for _, p in mem]
+        mem.append((self.t, pts))
+        if not seen:
+            return ranges
+        old = np.concatenate(seen)
+        if old.size == 0:
+            return ranges
+        dx, dy = old[:, 0] - pose.x, old[:, 1] - pose.y
+        dist = np.hypot(dx, dy)
+        lidar = self.world.lidar
+        rel = np.mod(np.arctan2(dy, dx) - pose.theta - lidar.angle_min, 2 * np.pi)
+        idx = np.rint(rel / lidar.angle_increment).astype(np.intp) % ranges.size
+        out = ranges.copy()
+        np.minimum.at(out, idx, dist)
+        return out
 
     def odometry(self, name: str) -> Odometry:
         r = self.robots[name]
