@@ -4,11 +4,14 @@ PYTHON ?= python3
 UV := $(shell command -v uv 2>/dev/null || echo "$(PYTHON) -m uv")
 RUN := $(UV) run --frozen --no-sync
 PYTEST_ARGS ?=
+DEMO_ARGS ?=
+EVAL_ARGS ?=
 
-.PHONY: help setup sync test lint format typecheck schemas bench bench-fabric bench-knowledge bench-sim demo clean
+.PHONY: help setup sync test lint format typecheck schemas bench bench-fabric bench-knowledge bench-sim demo eval clean
 
 help:
-	@echo "make demo       run the main job on embedded defaults"
+	@echo "make demo       run the lidar-occlusion loop end to end (out/demo/summary.json, demo.rrd)"
+	@echo "make eval       evaluate the loop on seeded scenarios (out/eval/lidar_occlusion.json)"
 	@echo "make test       run the test suite (RAP_REQUIRE_SERVICES=1 makes missing servers fail)"
 	@echo "make lint       ruff format check + ruff lint"
 	@echo "make typecheck  mypy --strict on schemas, libs and services"
@@ -52,8 +55,13 @@ bench-knowledge: setup
 bench-sim: setup
 	$(RUN) python -m bench.sim
 
+# The lidar-occlusion loop end to end (sim_world, knowledge, the runner; loopback Zenoh).
 demo: setup
-	@echo "make demo: the lidar-occlusion loop is not built yet; the workspace is installed, and 'make test' runs the SDK suite."
+	$(RUN) python -m lidar_occlusion.demo $(DEMO_ARGS)
+
+# N seeded scenarios with the loop and without: out/eval/lidar_occlusion.json
+eval: setup
+	$(RUN) python -m lidar_occlusion.eval $(EVAL_ARGS)
 
 clean:
 	rm -rf .venv .pytest_cache .mypy_cache .ruff_cache out

@@ -43,7 +43,7 @@ def test_scans_come_at_the_lidar_rate_with_the_occluded_beams_at_inf() -> None:
     for e in events:
         ranges = np.asarray(e.scan.ranges)
         assert np.isinf(ranges[e.occluded]).all()
-        assert e.occluded.any() == (8.0 <= e.t < 40.0)
+        assert e.occluded.any() == (6.0 <= e.t < 36.0)
         assert e.scan.frame_id == "tb1/base_link"
         assert e.scan.stamp == round(e.t * 1e9)
 

@@ -1,0 +1,214 @@
+"""The five MAPLE-K stages of the lidar-occlusion loop as RAP nodes.
+
+- monitor, on data ``<robot>/scan``: writes ``laser_scan``; emits ``new-data``.
+- analyse, on ``new-data``: reads ``laser_scan``, ``planned_lidar_mask`` and
+  ``handling_anomaly``; writes ``lidar_mask`` and, on an anomaly, ``handling_anomaly``;
+  emits ``anomaly`` (with the mask).
+- plan, on ``anomaly`` (and ``plan-rejected``): reads ``lidar_mask``; writes
+  ``planned_lidar_mask`` and ``directions``; proposes the plan (``new-plan``).
+- legitimate, on ``new-plan``: emits ``verdict`` (and ``plan-rejected`` when it rejects).
+- execute, on an approving ``verdict`` that passes the gate: publishes the plan on data
+  ``<robot>/spin_config``; writes ``handling_anomaly`` = false.
+
+Stage order holds by causality alone: every event carries the knowledge versions written
+before it, and a read waits for them. Execute acts only through the
+:class:`~rap_sdk.gate.ApprovalGate`: on the approved proposal itself, never on what the
+``directions`` key holds by then (RPIO's Execute read whatever was there).
+
+``build(robot)`` makes a fresh set (one per robot, or per evaluation run); the module
+attributes ``monitor`` ... ``execute`` are the set for robot ``tb1`` that the shipped
+deployment plans name.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import msgspec
+import numpy as np
+from rap_schemas import LaserScan, LidarMask, PlanProposal, SpinPlan, Verdict
+from rap_sdk import Context, Node
+from rap_sdk.gate import PLAN_REJECTED, ApprovalGate, legitimate, propose
+
+from .analysis import AnalysisConfig, MaskWindow, analyse_scan, is_anomaly, to_message
+from .planning import LegitimacyConfig, PlanConfig, check_plan, plan_for
+
+__all__ = [
+    "ANOMALY",
+    "NEW_DATA",
+    "ExecuteConfig",
+    "Loop",
+    "analyse",
+    "build",
+    "execute",
+    "legitimate_node",
+    "monitor",
+    "plan",
+]
+
+log = logging.getLogger(__name__)
+
+NEW_DATA = "new-data"
+ANOMALY = "anomaly"
+
+# knowledge keys (the reference's names)
+LASER_SCAN = "laser_scan"
+LIDAR_MASK = "lidar_mask"
+PLANNED_MASK = "planned_lidar_mask"
+DIRECTIONS = "directions"
+HANDLING = "handling_anomaly"
+
+
+class ExecuteConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    max_age: float = 0.2
+    """Seconds an approved plan stays executable after its creation."""
+
+
+@dataclass
+class Loop:
+    robot: str
+    monitor: Node
+    analyse: Node
+    plan: Node
+    legitimate: Node
+    execute: Node
+    gate: ApprovalGate
+    window: MaskWindow = field(default_factory=MaskWindow)
+
+    @property
+    def nodes(self) -> list[Node]:
+        return [self.monitor, self.analyse, self.plan, self.legitimate, self.execute]
+
+
+class _PlanState(msgspec.Struct):
+    attempts: int = 0
+    """Re-proposals of the current plan after rejections."""
+    previous: LidarMask | None = None
+    """The planned mask before the current proposal: restored when it is given up."""
+    current: bytes = b""
+    """uid of the plan proposed last: rejections of other plans are not this one's."""
+
+
+def build(
+    robot: str = "tb1",
+    *,
+    prefix: str = "",
+    analysis: AnalysisConfig | None = None,
+    planning: PlanConfig | None = None,
+    legitimacy: LegitimacyConfig | None = None,
+    execution: ExecuteConfig | None = None,
+) -> Loop:
+    """A fresh set of the five nodes for ``robot`` (names start with ``prefix``)."""
+    mon = Node(f"{prefix}monitor", stage="monitor")
+    ana = Node(f"{prefix}analysis", stage="analyse", config=analysis or AnalysisConfig())
+    pla = Node(f"{prefix}planner", stage="plan", config=planning or PlanConfig())
+    leg = Node(f"{prefix}legitimate", stage="legitimate", config=legitimacy or LegitimacyConfig())
+    exe_cfg = execution or ExecuteConfig()
+    exe = Node(f"{prefix}executor", stage="execute", config=exe_cfg)
+    gate = ApprovalGate(legitimators={leg.name}, max_age=exe_cfg.max_age)
+    loop = Loop(robot, mon, ana, pla, leg, exe, gate)
+    spin_topic = f"{robot}/spin_config"
+
+    # -- monitor ---------------------------------------------------------------------------
+    @mon.on_data(f"{robot}/scan")
+    async def on_scan(ctx: Context, scan: LaserScan) -> None:
+        await ctx.kb.write(LASER_SCAN, scan)
+        await ctx.emit(NEW_DATA)
+
+    # -- analyse ---------------------------------------------------------------------------
+    since_anomaly = [0]
+
+    @ana.on_event(NEW_DATA)
+    async def detect(ctx: Context) -> None:
+        cfg: AnalysisConfig = ctx.config
+        scan = await ctx.kb.read(LASER_SCAN, LaserScan)
+        if loop.window.size != cfg.window:
+            loop.window = MaskWindow(cfg.window)
+        mask = analyse_scan(scan, loop.window, cfg)
+        planned_msg = await ctx.kb.read(PLANNED_MASK, LidarMask, default=None)
+        handling = await ctx.kb.read(HANDLING, bool, default=False)
+        since_anomaly[0] += 1
+        if handling and since_anomaly[0] > cfg.stuck_after:
+            log.warning(
+                "%s: anomaly still marked as handled after %d scans; raising anew",
+                ana.name,
+                since_anomaly[0],
+            )
+            handling = False
+        planned = None if planned_msg is None else np.asarray(planned_msg.occluded, dtype=bool)
+        msg = to_message(mask, scan)
+        await ctx.kb.write(LIDAR_MASK, msg)
+        if is_anomaly(mask, planned, scan.angle_increment, handling, cfg):
+            since_anomaly[0] = 0
+            await ctx.kb.write(HANDLING, True)
+            await ctx.emit(ANOMALY, msg)
+
+    @ana.on_snapshot
+    def save_window() -> list[list[bool]]:
+        return loop.window.state()
+
+    @ana.on_restore
+    def load_window(state: list[list[bool]]) -> None:
+        loop.window.restore(state)
+
+    # -- plan ------------------------------------------------------------------------------
+    st = _PlanState()
+
+    @pla.on_event(ANOMALY)
+    async def make_plan(ctx: Context) -> None:
+        cfg: PlanConfig = ctx.config
+        mask = await ctx.kb.read(LIDAR_MASK, LidarMask)
+        spin = plan_for(mask.occluded, mask.angle_min, mask.angle_increment, cfg)
+        st.previous = await ctx.kb.read(PLANNED_MASK, LidarMask, default=None)
+        st.attempts = 0
+        await ctx.kb.write(PLANNED_MASK, mask)
+        await ctx.kb.write(DIRECTIONS, spin)
+        st.current = (await propose(ctx, spin)).plan_uid
+
+    @pla.on_event(PLAN_REJECTED)
+    async def replan(ctx: Context, verdict: Verdict) -> None:
+        cfg: PlanConfig = ctx.config
+        if verdict.plan_uid != st.current:
+            return  # not the plan in hand (a refused replay of an older one, say)
+        st.attempts += 1
+        if st.attempts <= cfg.replans:
+            spin = await ctx.kb.read(DIRECTIONS, SpinPlan)
+            log.info("%s: plan rejected (%s); proposing it again", pla.name, verdict.reason)
+            st.current = (await propose(ctx, spin)).plan_uid
+            return
+        log.warning("%s: plan rejected (%s); giving up on it", pla.name, verdict.reason)
+        if st.previous is None:
+            await ctx.kb.delete(PLANNED_MASK)
+        else:
+            await ctx.kb.write(PLANNED_MASK, st.previous)
+        await ctx.kb.write(HANDLING, False)
+
+    @pla.on_snapshot
+    def save_plan_state() -> _PlanState:
+        return st
+
+    @pla.on_restore
+    def load_plan_state(state: _PlanState) -> None:
+        st.attempts, st.previous, st.current = state.attempts, state.previous, state.current
+
+    # -- legitimate ------------------------------------------------------------------------
+    @legitimate(leg)
+    async def check(ctx: Context, proposal: PlanProposal) -> str | None:
+        return check_plan(proposal, ctx.clock.time_ns(), ctx.config)
+
+    # -- execute ---------------------------------------------------------------------------
+    @gate.on_approved(exe)
+    async def act(ctx: Context, proposal: PlanProposal) -> None:
+        await ctx.publish(spin_topic, proposal.plan)
+        await ctx.kb.write(HANDLING, False)
+
+    return loop
+
+
+_default = build()
+monitor = _default.monitor
+analyse = _default.analyse
+plan = _default.plan
+legitimate_node = _default.legitimate
+execute = _default.execute

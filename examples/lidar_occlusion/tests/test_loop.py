@@ -1,0 +1,160 @@
+"""The five nodes together on the in-memory fabric: detection, causal order, the gate."""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import math
+from collections.abc import AsyncIterator
+
+import msgspec
+import numpy as np
+import pytest
+from knowledge.app import open_service
+from knowledge.config import KnowledgeConfig
+from lidar_occlusion.nodes import Loop, build
+from lidar_occlusion.planning import LegitimacyConfig
+from rap_schemas import LaserScan, LidarMask, PlanProposal, SpinPlan, Verdict, keys
+from rap_sdk import Sealer
+from rap_sdk.testing import Harness
+
+pytestmark = pytest.mark.anyio
+
+N = 360
+INC = 2 * math.pi / N
+ANGLES = -math.pi + np.arange(N) * INC
+
+
+def scan(start: float | None = None, width: float = 0.0) -> LaserScan:
+    r = np.full(N, 3.0)
+    if start is not None:
+        r[np.mod(ANGLES - start, 2 * math.pi) < width] = np.inf
+    return LaserScan(
+        stamp=0,
+        frame_id="tb1/base_link",
+        angle_min=-math.pi,
+        angle_increment=INC,
+        range_min=0.1,
+        range_max=12.0,
+        ranges=r.tolist(),
+    )
+
+
+@contextlib.asynccontextmanager
+async def running(loop: Loop, fabric: str = "memory") -> AsyncIterator[Harness]:
+    async with Harness(system="lo", fabric=fabric) as h:  # type: ignore[arg-type]
+        await h.hold(open_service(KnowledgeConfig(system="lo"), fabric=h.fabric))
+        await h.start(*loop.nodes)
+        yield h
+
+
+async def test_an_occlusion_is_detected_planned_approved_and_sent_to_the_robot() -> None:
+    loop = build("tb1")
+    async with running(loop) as h:
+        env = await h.publish("tb1/scan", scan(-0.4, 0.8))
+        plan_rec = await h.expect_data("tb1/spin_config")
+        plan = plan_rec.decode(SpinPlan)
+        anomaly = h.of(keys.Kind.EVENT, "anomaly")[0].decode(LidarMask)
+        assert np.count_nonzero(anomaly.occluded) > 40
+        # both ends of the +-0.4 rad sector and back: three commands, net zero
+        assert len(plan.commands) == 3
+        assert sum(c.omega * c.duration for c in plan.commands) == pytest.approx(0, abs=1e-9)
+        # every record of the cycle carries the scan's uid as its cycle
+        assert plan_rec.envelope is not None
+        assert plan_rec.envelope.cycle == env.uid
+        # stage order by causality: each handler was triggered by what the previous one sent
+        starts = [t for t in h.traces() if t.phase == "start" and t.cycle == env.uid]
+        stages = [t.stage.value if t.stage else "" for t in starts]
+        assert stages == ["monitor", "analyse", "plan", "legitimate", "execute"]
+        sent = {r.envelope.uid: r for r in h.records if r.envelope is not None}
+        for prev, nxt in itertools.pairwise(starts):
+            cause = sent[nxt.trigger].envelope
+            assert cause is not None
+            assert cause.source == prev.node
+        assert loop.gate.stats.approved == 1
+        # the anomaly is being handled no more, and the same occlusion raises nothing new
+        await h.publish("tb1/scan", scan(-0.4, 0.8))
+        await h.wait_for(
+            lambda r: (
+                r.kind is keys.Kind.TRACE
+                and r.envelope is not None
+                and r.envelope.type == "rap.StageTrace/1"
+                and r.decode(msgspec.Raw) is not None
+                and len([t for t in h.traces("analysis") if t.phase == "end"]) == 2
+            )
+        )
+        assert len(h.of(keys.Kind.EVENT, "anomaly")) == 1
+
+
+async def test_a_rejecting_legitimate_stops_every_plan_before_the_robot() -> None:
+    loop = build("tb1", legitimacy=LegitimacyConfig(max_angular=0.5))  # 1 rad/s is too fast
+    async with running(loop) as h:
+        await h.publish("tb1/scan", scan(0.2, 0.6))
+        first = await h.expect_event("plan-rejected")
+        assert "limit" in first.decode(Verdict).reason
+        # the planner proposes once more (its budget), is refused again, and gives up
+        await h.wait_for(lambda r: len(h.of(keys.Kind.EVENT, "plan-rejected")) == 2)
+        await h.wait_for(
+            lambda r: (
+                any(t.phase == "end" and t.node == "planner" for t in h.traces())
+                and len([t for t in h.traces("planner") if t.phase == "end"]) == 3
+            )
+        )
+        assert not h.of(keys.Kind.DATA, "tb1/spin_config")
+        assert loop.gate.stats.approved == 0
+        assert loop.gate.stats.not_approved == 2
+        verdicts = [r.decode(Verdict) for r in h.of(keys.Kind.EVENT, "verdict")]
+        assert [v.approved for v in verdicts] == [False, False]
+        # given up: the anomaly is no longer handled, so a new scan raises it again
+        n = len(h.of(keys.Kind.EVENT, "anomaly"))
+        await h.publish("tb1/scan", scan(0.2, 0.6))
+        await h.wait_for(lambda r: len(h.of(keys.Kind.EVENT, "anomaly")) > n)
+
+
+async def test_replayed_stale_and_forged_approvals_are_refused() -> None:
+    loop = build("tb1")
+    async with running(loop) as h:
+        await h.publish("tb1/scan", scan(-0.4, 0.8))
+        await h.expect_data("tb1/spin_config")
+        approval = next(
+            r.decode(Verdict)
+            for r in h.of(keys.Kind.EVENT, "verdict")
+            if r.decode(Verdict).approved
+        )
+        assert approval.proposal is not None
+        key = keys.event("lo", "verdict")
+        as_legit = Sealer("legitimate")
+        # 1. the same approval again, in a new envelope from the legitimator: replayed
+        # (refused and counted; no plan-rejected: that plan ran, nothing is to be replanned)
+        payload, _ = as_legit.seal_message(key, approval)
+        await h.publish_raw(key, payload)
+        await h.wait_for(lambda r: loop.gate.stats.replayed == 1)
+        assert not h.of(keys.Kind.EVENT, "plan-rejected")
+        # 2. an approval of a plan made long ago: stale
+        old = PlanProposal(
+            plan_uid=b"o" * 16, plan=approval.proposal.plan, proposer="planner", created=1
+        )
+        stale = Verdict(
+            plan_uid=old.plan_uid, approved=True, legitimator="legitimate", ts=2, proposal=old
+        )
+        payload, _ = as_legit.seal_message(key, stale)
+        n = len(h.of(keys.Kind.EVENT, "plan-rejected"))
+        await h.publish_raw(key, payload)
+        await h.wait_for(lambda r: len(h.of(keys.Kind.EVENT, "plan-rejected")) > n)
+        assert "stale" in h.of(keys.Kind.EVENT, "plan-rejected")[-1].decode(Verdict).reason
+        # 3. an approval from a node that is not the legitimator: forged
+        fresh = PlanProposal(
+            plan_uid=b"f" * 16, plan=approval.proposal.plan, proposer="x", created=2**62
+        )
+        forged = Verdict(
+            plan_uid=fresh.plan_uid, approved=True, legitimator="legitimate", ts=2, proposal=fresh
+        )
+        n = len(h.of(keys.Kind.EVENT, "plan-rejected"))
+        await h.emit("verdict", forged)  # sent by "harness"
+        await h.wait_for(lambda r: len(h.of(keys.Kind.EVENT, "plan-rejected")) > n)
+        assert (
+            "not a legitimator" in h.of(keys.Kind.EVENT, "plan-rejected")[-1].decode(Verdict).reason
+        )
+        st = loop.gate.stats
+        assert (st.approved, st.replayed, st.stale, st.unknown_legitimator) == (1, 1, 1, 1)
+        assert len(h.of(keys.Kind.DATA, "tb1/spin_config")) == 1  # only the one approved plan
