@@ -217,6 +217,15 @@ def metrics(
         "route_completed": bool(route) and reached >= len(route),
         "distance_m": round(robot.distance, 2),
     }
+    full = violations = 0
+    order = ["monitor", "analyse", "plan", "legitimate", "execute"]
+    for recs in obs.stages.values():
+        start = {r.stage.value: r.ts - r.duration_ns for r in recs if r.stage is not None}
+        if all(st in start for st in order):
+            full += 1  # one host, one clock: each stage started after the one before
+            violations += [start[st] for st in order] != sorted(start[st] for st in order)
+    out["full_cycles"] = full
+    out["stage_order_violations"] = violations
     if tracker is not None:
         out["lockstep_timeouts"] = tracker.timeouts
     return out

@@ -1,0 +1,1 @@
+"""Loop latency race: scan sent at the robot -> spin plan received at the robot."""

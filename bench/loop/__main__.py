@@ -1,0 +1,194 @@
+"""The loop race: scan at the robot -> spin plan at the robot, RAP against RPIO 0.4.3.
+
+    python -m bench.loop [--quick] [--no-peer]
+
+In one run: the floor (the five handlers called directly, one asyncio task), RAP with
+all five stages in one runner process, RAP with each stage in its own process (both
+over loopback Zenoh, knowledge service in its own process), and the peer over Redis and
+over MQTT (bench/loop/peer.py, in its own virtual environment). Fixed rates first (5, 20,
+100 Hz), then each system climbs a ladder of rates to the highest it sustains with no
+lost cycle. Writes bench/results/loop.json and the "loop" section of docs/benchmarks.md.
+Budgets (checked, reported, exit 1 on a miss): RAP five-process p50 <= 1/3 of
+RPIO-over-Redis p50 at the same rate, RAP one-process p50 <= 1/6 of it, RAP p99 <= 2x its
+own p50, no lost cycle at 100 Hz.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import anyio
+
+from bench.report import ROOT, hardware, pct, table, write_json, write_section
+
+from .rap import run_floor, run_rap
+
+RATES = [5.0, 20.0, 100.0]
+RAP_LADDER = [200.0, 400.0, 700.0, 1000.0]
+PEER_LADDER = (200.0, 300.0, 500.0)
+
+
+def _say(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def _stats(lat_ns: list[int]) -> dict[str, Any]:
+    if not lat_ns:
+        return {"p50_ms": None, "p90_ms": None, "p99_ms": None, "n": 0}
+    return {
+        "p50_ms": round(pct(lat_ns, 0.5) / 1e6, 3),
+        "p90_ms": round(pct(lat_ns, 0.9) / 1e6, 3),
+        "p99_ms": round(pct(lat_ns, 0.99) / 1e6, 3),
+        "n": len(lat_ns),
+    }
+
+
+def _row(system: str, r: dict[str, Any]) -> dict[str, Any]:
+    return {
+        "system": system,
+        "rate_hz": r["rate_hz"],
+        **_stats(r.get("latencies_ns", [])),
+        "lost": r.get("lost"),
+        "send_rate_hz": r.get("send_rate_hz"),
+    }
+
+
+def _cycles(rate: float, seconds: float, lo: int = 30, hi: int = 2000) -> int:
+    return int(min(hi, max(lo, rate * seconds)))
+
+
+async def _rap(
+    variant: str, rates: list[float], seconds: float, logs: Path
+) -> list[dict[str, Any]]:
+    rows = []
+    for rate in rates:  # one deployment per rate: each starts as cold as the peer's does
+        res = await run_rap(variant, [rate], _cycles(rate, seconds), 20, logs)
+        rows.append(_row(variant, res[0]))
+        _say(f"  {variant} {rate:g} Hz: {rows[-1]}")
+    return rows
+
+
+def _ladder(rows: list[dict[str, Any]]) -> float | None:
+    best = None
+    for r in sorted(rows, key=lambda r: r["rate_hz"]):
+        if r["lost"] or (r["send_rate_hz"] or 0) < 0.95 * r["rate_hz"]:
+            break
+        best = r["rate_hz"]
+    return best
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(prog="python -m bench.loop", description=__doc__)
+    ap.add_argument("--quick", action="store_true", help="short rounds (a smoke run)")
+    ap.add_argument("--no-peer", action="store_true", help="RAP only (no RPIO venv)")
+    a = ap.parse_args()
+    seconds = 2.0 if a.quick else 8.0
+    logs = ROOT / "out" / "bench-loop"
+    t0 = time.perf_counter()
+    out: dict[str, Any] = {"hardware": hardware(), "seconds_per_rate": seconds}
+    rows: list[dict[str, Any]] = []
+    floor = run_floor(5000)
+    out["floor"] = _stats(floor)
+    _say(f"floor: {out['floor']}")
+    sustained: dict[str, float | None] = {}
+    for variant in ("rap-1proc", "rap-5proc"):
+        fixed = anyio.run(_rap, variant, RATES, seconds, logs)
+        ladder = anyio.run(_rap, variant, RAP_LADDER, min(seconds, 3.0), logs)
+        rows += fixed
+        out.setdefault("ladder", {})[variant] = ladder
+        sustained[variant] = _ladder(fixed + ladder)
+    if not a.no_peer:
+        from .peer import run_peer, sustained_rate
+
+        for variant in ("redis", "mqtt"):
+            name = f"rpio-{variant}"
+            res = run_peer(variant, RATES, _cycles(100, seconds), 20)
+            for r in res["rates"]:
+                rows.append(_row(name, r))
+                _say(f"  {name} {r['rate_hz']:g} Hz: {rows[-1]}")
+            lad = sustained_rate(variant, ladder=(*RATES, *PEER_LADDER), seconds=min(seconds, 3.0))
+            sustained[name] = lad["sustained_hz"]
+            out.setdefault("ladder", {})[name] = lad["steps"]
+    out["rows"] = rows
+    out["sustained_hz"] = sustained
+    checks = _budgets(rows)
+    out["budgets"] = checks
+    out["wall_seconds"] = round(time.perf_counter() - t0, 1)
+    write_json("loop", out)
+    write_section("loop", _doc(out))
+    for c in checks:
+        _say(f"{'ok  ' if c['ok'] else 'MISS'} {c['what']}: {c['value']} (budget {c['budget']})")
+    return 0 if all(c["ok"] for c in checks) else 1
+
+
+def _find(rows: list[dict[str, Any]], system: str, rate: float) -> dict[str, Any] | None:
+    return next((r for r in rows if r["system"] == system and r["rate_hz"] == rate), None)
+
+
+def _budgets(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    checks = []
+    for rate in RATES:
+        peer = _find(rows, "rpio-redis", rate)
+        for variant, frac in (("rap-5proc", 1 / 3), ("rap-1proc", 1 / 6)):
+            r = _find(rows, variant, rate)
+            if r is None or r["p50_ms"] is None:
+                continue
+            if peer is not None and peer["p50_ms"]:
+                ratio = r["p50_ms"] / peer["p50_ms"]
+                checks.append(
+                    {
+                        "what": f"{variant} p50 / rpio-redis p50 at {rate:g} Hz",
+                        "value": round(ratio, 3),
+                        "budget": round(frac, 3),
+                        "ok": ratio <= frac,
+                    }
+                )
+            checks.append(
+                {
+                    "what": f"{variant} p99 / own p50 at {rate:g} Hz",
+                    "value": round(r["p99_ms"] / r["p50_ms"], 2),
+                    "budget": 2.0,
+                    "ok": r["p99_ms"] <= 2 * r["p50_ms"],
+                }
+            )
+            if rate == 100.0:
+                checks.append(
+                    {
+                        "what": f"{variant} lost cycles at 100 Hz",
+                        "value": r["lost"],
+                        "budget": 0,
+                        "ok": r["lost"] == 0,
+                    }
+                )
+    return checks
+
+
+def _doc(out: dict[str, Any]) -> str:
+    cols = ["system", "rate_hz", "p50_ms", "p90_ms", "p99_ms", "lost", "send_rate_hz", "n"]
+    lines = [
+        "Loop latency, scan published at the robot -> spin plan received at the robot "
+        "(`python -m bench.loop`, every scan runs all five stages). "
+        f"Floor (the five handlers called directly): p50 {out['floor']['p50_ms']} ms, "
+        f"p99 {out['floor']['p99_ms']} ms.",
+        "",
+        table(cols, [[r.get(c) for c in cols] for r in out["rows"]]),
+        "",
+        "Highest rate with no lost cycle: "
+        + ", ".join(
+            f"{k} {v if v is not None else '-'} Hz" for k, v in out["sustained_hz"].items()
+        ),
+        "",
+        table(
+            ["what", "value", "budget", "ok"],
+            [[b["what"], b["value"], b["budget"], b["ok"]] for b in out["budgets"]],
+        ),
+    ]
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
