@@ -7,7 +7,7 @@ PYTEST_ARGS ?=
 DEMO_ARGS ?=
 EVAL_ARGS ?=
 
-.PHONY: help setup sync test lint format typecheck schemas bench bench-fabric bench-knowledge bench-sim demo eval clean
+.PHONY: help setup sync test lint format typecheck schemas bench bench-fabric bench-knowledge bench-sim bench-loop demo eval clean
 
 help:
 	@echo "make demo       run the lidar-occlusion loop end to end (out/demo/summary.json, demo.rrd)"
@@ -54,6 +54,10 @@ bench-knowledge: setup
 
 bench-sim: setup
 	$(RUN) python -m bench.sim
+
+# The loop race against RPIO 0.4.3 (its own venv in bench/.rpio-venv; ~10 min)
+bench-loop: setup
+	$(RUN) python -m bench.loop
 
 # The lidar-occlusion loop end to end (sim_world, knowledge, the runner; loopback Zenoh).
 demo: setup
