@@ -5,46 +5,23 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any
 
 import anyio
 import numpy as np
 import pytest
-from anyio.abc import TaskGroup
 from knowledge.app import open_service
 from knowledge.config import KnowledgeConfig
 from lidar_occlusion.demo import default_plan_path, run_demo
 from lidar_occlusion.nodes import build
 from rap_schemas import KnowledgeAccess, LaserScan, keys
 from rap_sdk import run_nodes
-from rap_sdk.testing import Harness
+from rap_sdk.testing import DelayedKnowledgeWrites, Harness
 from sim_world.world import default_world_path, load_world
 
 pytestmark = pytest.mark.anyio
 
 N = 360
 ANGLES = -math.pi + np.arange(N) * (2 * math.pi / N)
-
-
-class DelayedKnowledgeWrites:
-    """A fabric whose knowledge write-stream samples leave ``delay`` s late; everything
-    else goes out at once (a slow write path)."""
-
-    def __init__(self, inner: Any, tg: TaskGroup, delay: float) -> None:
-        self._inner, self._tg, self._delay = inner, tg, delay
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._inner, name)
-
-    async def publish(self, key: str, payload: bytes, *, timeout: float | None = None) -> None:
-        if keys.parse(key).kind is not keys.Kind.KB:
-            await self._inner.publish(key, payload, timeout=timeout)
-        else:
-            self._tg.start_soon(self._later, key, payload)
-
-    async def _later(self, key: str, payload: bytes) -> None:
-        await anyio.sleep(self._delay)  # the injected delay under test
-        await self._inner.publish(key, payload)
 
 
 def scan(start: float | None, width: float = 0.0) -> LaserScan:

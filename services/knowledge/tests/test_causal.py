@@ -10,35 +10,14 @@ from typing import Any
 
 import anyio
 import pytest
-from anyio.abc import TaskGroup
 from knowledge.app import open_service
 from knowledge.config import KnowledgeConfig
 from rap_schemas import LaserScan, StageTrace, keys
 from rap_sdk import Context, KnowledgeError, MemoryBus, MemoryFabric, Node, run_nodes
 from rap_sdk.envelope import Sealer
+from rap_sdk.testing import DelayedKnowledgeWrites
 
 pytestmark = pytest.mark.anyio
-
-
-class DelayedKnowledgeWrites:
-    """A fabric whose knowledge write-stream samples leave ``delay`` s late (or never,
-    with ``drop``); everything else goes out at once. The write path of a slow link."""
-
-    def __init__(self, inner: Any, tg: TaskGroup, delay: float, drop: bool = False) -> None:
-        self._inner, self._tg, self._delay, self._drop = inner, tg, delay, drop
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._inner, name)
-
-    async def publish(self, key: str, payload: bytes, *, timeout: float | None = None) -> None:
-        if keys.parse(key).kind is not keys.Kind.KB:
-            await self._inner.publish(key, payload, timeout=timeout)
-        elif not self._drop:
-            self._tg.start_soon(self._later, key, payload)
-
-    async def _later(self, key: str, payload: bytes) -> None:
-        await anyio.sleep(self._delay)  # the injected delay under test
-        await self._inner.publish(key, payload)
 
 
 def scan(stamp: int) -> LaserScan:

@@ -26,6 +26,7 @@ from typing import Any, Literal, TypeVar
 
 import anyio
 import msgspec
+from anyio.abc import TaskGroup
 from rap_schemas import Envelope, Message, Rejection, StageTrace, keys
 
 from .envelope import OutgoingEnvelope, Sealer
@@ -35,7 +36,14 @@ from .inbox import InboxPolicy, Overflow
 from .node import Node
 from .runtime import NodeGroup, await_alive, run_nodes
 
-__all__ = ["REQUIRE_SERVICES", "Harness", "Record", "free_port", "require_binary"]
+__all__ = [
+    "REQUIRE_SERVICES",
+    "DelayedKnowledgeWrites",
+    "Harness",
+    "Record",
+    "free_port",
+    "require_binary",
+]
 
 REQUIRE_SERVICES = "RAP_REQUIRE_SERVICES"
 """Set to 1 (CI does) and a test whose server is missing fails instead of skipping."""
@@ -83,6 +91,27 @@ class Record:
         if self.envelope is None:
             raise ValueError(f"sample on {self.key} is not an envelope")
         return msgspec.msgpack.decode(self.envelope.body, type=cls)
+
+
+class DelayedKnowledgeWrites:
+    """A fabric whose knowledge write-stream samples leave ``delay`` s late (or never,
+    with ``drop``); everything else goes out at once. The write path of a slow link."""
+
+    def __init__(self, inner: Fabric, tg: TaskGroup, delay: float, drop: bool = False) -> None:
+        self._inner, self._tg, self._delay, self._drop = inner, tg, delay, drop
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._inner, name)
+
+    async def publish(self, key: str, payload: bytes, *, timeout: float | None = None) -> None:
+        if keys.parse(key).kind is not keys.Kind.KB:
+            await self._inner.publish(key, payload, timeout=timeout)
+        elif not self._drop:
+            self._tg.start_soon(self._later, key, payload)
+
+    async def _later(self, key: str, payload: bytes) -> None:
+        await anyio.sleep(self._delay)  # the injected delay under test
+        await self._inner.publish(key, payload)
 
 
 class Harness:
