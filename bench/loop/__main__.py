@@ -23,13 +23,25 @@ from typing import Any
 
 import anyio
 
-from bench.report import ROOT, hardware, pct, table, write_json, write_section
+from bench.report import ROOT, hardware, hardware_line, pct, table, write_json, write_section
 
 from .rap import run_floor, run_rap
 
 RATES = [5.0, 20.0, 100.0]
 RAP_LADDER = [200.0, 400.0, 700.0, 1000.0]
 PEER_LADDER = (200.0, 300.0, 500.0)
+
+
+WHERE_THE_TIME_GOES = """Where RAP's time goes (profiled; the budgets above are missed). In one \
+process on the in-memory fabric, cycles back to back, a cycle costs about 0.36 ms: 7 \
+event-loop turns, 22 decodes and 18 publishes (the scan is decoded by the monitor and \
+again from knowledge; three knowledge writes, one of 4.5 KB, go out on the write stream \
+to the knowledge service). Paced at 100 Hz the same cycle takes about 0.9 ms: each \
+stage runs cold after a wake-up (30-150 us per handler where micro-benchmarks give 5 \
+us). Across processes each hop costs several hundred us with 7 processes on 2 cores, \
+against about 0.12 ms in the two-process fabric benchmark. Next: carry the scan in the \
+event rather than a knowledge write and a read, keep knowledge writes off the critical \
+path, decode each scan once."""
 
 
 def _say(msg: str) -> None:
@@ -170,6 +182,10 @@ def _budgets(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
 def _doc(out: dict[str, Any]) -> str:
     cols = ["system", "rate_hz", "p50_ms", "p90_ms", "p99_ms", "lost", "send_rate_hz", "n"]
     lines = [
+        "## MAPLE-K loop race (`make bench-loop`)",
+        "",
+        f"Hardware: {hardware_line(out['hardware'])}",
+        "",
         "Loop latency, scan published at the robot -> spin plan received at the robot "
         "(`python -m bench.loop`, every scan runs all five stages). "
         f"Floor (the five handlers called directly): p50 {out['floor']['p50_ms']} ms, "
@@ -186,6 +202,8 @@ def _doc(out: dict[str, Any]) -> str:
             ["what", "value", "budget", "ok"],
             [[b["what"], b["value"], b["budget"], b["ok"]] for b in out["budgets"]],
         ),
+        "",
+        WHERE_THE_TIME_GOES,
     ]
     return "\n".join(lines)
 

@@ -17,7 +17,7 @@ from collections.abc import Callable
 from typing import Any
 
 from lidar_occlusion.planning import LegitimacyConfig, check_plan
-from rap_schemas import LaserScan, LidarMask, PlanProposal, SpinCommand, SpinPlan
+from rap_schemas import LaserScan, LidarMask, PlanProposal, SpinCommand, SpinPlan, Verdict
 from rap_sdk import Context, Node
 from rap_sdk.gate import ApprovalGate, legitimate, propose
 
@@ -76,8 +76,6 @@ def handlers(now_ns: Callable[[], int]) -> Callable[[LaserScan], SpinPlan | None
     """The floor: the same five steps called directly, knowledge in a dict."""
     kb: dict[str, Any] = {}
     floor_gate = ApprovalGate(legitimators={"legitimate"}, max_age=1.0)
-    from rap_schemas import Verdict
-
     uid = [0]
 
     def cycle(scan: LaserScan) -> SpinPlan | None:

@@ -17,9 +17,10 @@ from pathlib import Path
 from typing import Any
 
 import anyio
-from lidar_occlusion.deploy import free_port, local_deployment
+from lidar_occlusion.deploy import local_deployment
 from rap_schemas import LaserScan, SpinPlan, keys
 from rap_sdk import Context, Node, NodeRuntime, ZenohConfig, ZenohFabric
+from rap_sdk.fabric import free_port
 
 from .chain import ROBOT, handlers
 
@@ -108,9 +109,7 @@ async def run_rap(
     out = []
     async with (
         ZenohFabric(ZenohConfig(listen=[endpoint])) as fabric,
-        local_deployment(
-            PLANS[variant], fabric=fabric, endpoint=endpoint, logs=logs / variant
-        ) as dep,
+        local_deployment(PLANS[variant], fabric=fabric, endpoint=endpoint, logs=logs / variant),
     ):
         rt = NodeRuntime(robot.node, fabric, system=SYSTEM, trace=False)
         async with anyio.create_task_group() as tg:
@@ -119,7 +118,6 @@ async def run_rap(
             await _round(rt, robot, 50.0, warmup)
             out.extend([await _round(rt, robot, rate, cycles) for rate in rates])
             rt.stop()
-        del dep
     return out
 
 

@@ -22,12 +22,13 @@ import typer
 from rap_schemas import PlanError, load_plan
 from rap_sdk import ZenohConfig, ZenohFabric
 from rap_sdk.cycles import CycleTracker, Topology
+from rap_sdk.fabric import free_port
 from sim_world.service import SimService
 from sim_world.sim import Simulation
 from sim_world.viz import RerunLog
 from sim_world.world import WorldError, WorldSpec, default_world_path, load_world
 
-from .deploy import free_port, local_deployment, plan_nodes
+from .deploy import local_deployment, plan_nodes
 from .scenario import Observer, metrics
 
 __all__ = ["default_plan_path", "main", "run_demo"]

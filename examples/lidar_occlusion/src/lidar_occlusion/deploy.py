@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import socket
 import subprocess
 import sys
 from collections.abc import AsyncIterator
@@ -27,21 +26,15 @@ from anyio.abc import Process
 from maplek_runner.loading import load_share
 from rap_schemas import PlanDocument, load_plan
 from rap_sdk import Fabric, Node, await_alive
+from rap_sdk.fabric import free_port
 
-__all__ = ["Deployment", "free_port", "local_deployment", "plan_nodes"]
+__all__ = ["Deployment", "local_deployment", "plan_nodes"]
 
 log = logging.getLogger(__name__)
 
 KNOWLEDGE = "knowledge"
 STARTUP = 60.0
 """Seconds every process has to come up."""
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
 
 
 def plan_nodes(doc: PlanDocument) -> list[Node]:

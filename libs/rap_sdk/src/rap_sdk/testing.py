@@ -18,7 +18,6 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
-import socket
 from collections.abc import Callable
 from dataclasses import dataclass
 from types import TracebackType
@@ -31,7 +30,7 @@ from rap_schemas import Envelope, Message, Rejection, StageTrace, keys
 
 from .envelope import OutgoingEnvelope, Sealer
 from .errors import LifecycleError
-from .fabric import Fabric, MemoryBus, MemoryFabric, ZenohConfig, ZenohFabric
+from .fabric import Fabric, MemoryBus, MemoryFabric, ZenohConfig, ZenohFabric, free_port
 from .inbox import InboxPolicy, Overflow
 from .node import Node
 from .runtime import NodeGroup, await_alive, run_nodes
@@ -68,14 +67,6 @@ def require_binary(name: str, *, hint: str = "") -> str:
     if os.environ.get(REQUIRE_SERVICES) == "1":
         pytest.fail(f"{message} ({REQUIRE_SERVICES}=1: servers are required here)")
     pytest.skip(message)
-
-
-def free_port() -> int:
-    """A free TCP port on loopback (for a listener a test starts itself)."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
 
 
 @dataclass(frozen=True, slots=True)

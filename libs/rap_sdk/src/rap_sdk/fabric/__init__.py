@@ -13,7 +13,7 @@ from ._types import (
     Token,
 )
 from .memory import MemoryBus, MemoryFabric
-from .zenoh_fabric import ZenohConfig, ZenohFabric
+from .zenoh_fabric import ZenohConfig, ZenohFabric, free_port
 
 __all__ = [
     "Fabric",
@@ -30,4 +30,5 @@ __all__ = [
     "Token",
     "ZenohConfig",
     "ZenohFabric",
+    "free_port",
 ]

@@ -22,6 +22,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import socket
 from collections.abc import Callable, Iterator
 from types import TracebackType
 from typing import Any, Literal
@@ -514,3 +515,11 @@ class ZenohFabric:
             )
         self._watches.append(stream)
         return stream
+
+
+def free_port() -> int:
+    """A free TCP port on loopback, for a listen endpoint (``tcp/127.0.0.1:<port>``)."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port: int = sock.getsockname()[1]
+        return port
