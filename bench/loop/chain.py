@@ -72,6 +72,15 @@ async def act(ctx: Context, proposal: PlanProposal) -> None:
     await ctx.publish(f"{ROBOT}/spin_config", proposal.plan)
 
 
+echo = Node("echo", stage="monitor")
+"""The transport floor through RAP (plans/echo.yaml): each scan straight back as a plan."""
+
+
+@echo.on_data(f"{ROBOT}/scan")
+async def answer(ctx: Context, scan: LaserScan) -> None:
+    await ctx.publish(f"{ROBOT}/spin_config", PLAN)
+
+
 def handlers(now_ns: Callable[[], int]) -> Callable[[LaserScan], SpinPlan | None]:
     """The floor: the same five steps called directly, knowledge in a dict."""
     kb: dict[str, Any] = {}

@@ -17,15 +17,22 @@ from pathlib import Path
 from typing import Any
 
 import anyio
+from knowledge.app import open_service
+from knowledge.config import KnowledgeConfig
 from lidar_occlusion.deploy import local_deployment
 from rap_schemas import LaserScan, SpinPlan, keys
-from rap_sdk import Context, Node, NodeRuntime, ZenohConfig, ZenohFabric
+from rap_sdk import Context, MemoryFabric, Node, NodeRuntime, ZenohConfig, ZenohFabric, run_nodes
 from rap_sdk.fabric import free_port
 
+from . import chain
 from .chain import ROBOT, handlers
 
 HERE = Path(__file__).resolve().parent
-PLANS = {"rap-1proc": HERE / "plans" / "one.yaml", "rap-5proc": HERE / "plans" / "five.yaml"}
+PLANS = {
+    "rap-1proc": HERE / "plans" / "one.yaml",
+    "rap-5proc": HERE / "plans" / "five.yaml",
+    "rap-echo": HERE / "plans" / "echo.yaml",
+}
 SYSTEM = "race"
 LOST_AFTER = 2.0
 OCCLUDED = (*range(100, 130), *range(250, 262))
@@ -118,6 +125,25 @@ async def run_rap(
             await _round(rt, robot, 50.0, warmup)
             out.extend([await _round(rt, robot, rate, cycles) for rate in rates])
             rt.stop()
+    return out
+
+
+async def run_inproc(rates: list[float], cycles: int, warmup: int) -> list[dict[str, Any]]:
+    """The chain without a transport: robot, the five nodes and the knowledge service in
+    this process on the in-memory fabric (what the runtime itself costs per cycle)."""
+    nodes = [chain.monitor, chain.analysis, chain.planner, chain.legitimator, chain.executor]
+    robot = Robot()
+    async with (
+        MemoryFabric() as fabric,
+        open_service(KnowledgeConfig(system=SYSTEM), fabric=fabric),
+        run_nodes(fabric, nodes, system=SYSTEM),
+        anyio.create_task_group() as tg,
+    ):
+        rt = NodeRuntime(robot.node, fabric, system=SYSTEM, trace=False)
+        await tg.start(rt.run)
+        await _round(rt, robot, 50.0, warmup)
+        out = [await _round(rt, robot, rate, cycles) for rate in rates]
+        rt.stop()
     return out
 
 
