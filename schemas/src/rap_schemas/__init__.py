@@ -45,6 +45,7 @@ from .plan import (
     load_plan,
     parse_plan,
 )
+from .trust import TrustOutput, TrustSpecStatus, TrustSpecUpdate
 
 __all__ = [
     "MESSAGES",
@@ -83,6 +84,9 @@ __all__ = [
     "SpinPlan",
     "Stage",
     "StageTrace",
+    "TrustOutput",
+    "TrustSpecStatus",
+    "TrustSpecUpdate",
     "Twist",
     "Verdict",
     "by_type",

@@ -20,6 +20,7 @@ from .lidar import (
 )
 from .maplek import KnowledgeAccess, Rejection, StageTrace
 from .message import Message
+from .trust import TrustOutput, TrustSpecStatus, TrustSpecUpdate
 
 __all__ = ["MESSAGES", "by_type"]
 
@@ -37,6 +38,9 @@ MESSAGES: Final[tuple[type[Message], ...]] = (
     SpinCommand,
     SpinPlan,
     StageTrace,
+    TrustOutput,
+    TrustSpecStatus,
+    TrustSpecUpdate,
     Twist,
     Verdict,
 )

@@ -1,0 +1,65 @@
+"""Errors of the trust checker.
+
+TrustError                    base of everything raised here
+├── SpecError                 a spec that must not start (syntax, types, cycles,
+│                             memory bound): one or more :class:`Problem` with
+│                             file:line:col, the offending text and a hint
+├── EvalError                 a run-time error in a tick (Int overflow, division by
+│                             zero, a value of the wrong type): stream, tick, place
+└── InputError                an input that cannot be taken (unknown stream, bad
+                              value, bad trace file line): what and where
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+__all__ = ["EvalError", "InputError", "Problem", "SpecError", "TrustError"]
+
+
+class TrustError(Exception):
+    """Base of the trust checker's errors."""
+
+
+@dataclass(frozen=True, slots=True)
+class Problem:
+    """One thing wrong with a spec, at ``path:line:col``."""
+
+    path: str
+    line: int
+    col: int
+    message: str
+    text: str = ""
+    """The offending source line (shown with a caret under ``col``)."""
+    hint: str = ""
+
+    def __str__(self) -> str:
+        out = f"{self.path}:{self.line}:{self.col}: {self.message}"
+        if self.text:
+            out += f"\n    {self.text}\n    {' ' * max(self.col - 1, 0)}^"
+        if self.hint:
+            out += f"\n    hint: {self.hint}"
+        return out
+
+
+class SpecError(TrustError):
+    """The spec has errors and will not run; ``problems`` lists them all."""
+
+    def __init__(self, problems: list[Problem]) -> None:
+        self.problems = list(problems)
+        super().__init__("\n".join(str(p) for p in self.problems))
+
+
+class EvalError(TrustError):
+    """A tick could not be evaluated: ``stream`` at ``tick``, at ``pos`` of the spec."""
+
+    def __init__(self, message: str, *, stream: str = "", tick: int = -1, where: str = "") -> None:
+        self.stream, self.tick, self.where = stream, tick, where
+        at = f" in {stream!r}" if stream else ""
+        at += f" at tick {tick}" if tick >= 0 else ""
+        at += f" ({where})" if where else ""
+        super().__init__(f"{message}{at}")
+
+
+class InputError(TrustError):
+    """An input that cannot be taken: unknown stream, bad value, bad trace line."""

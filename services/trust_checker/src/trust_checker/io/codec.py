@@ -1,0 +1,130 @@
+"""Stream values on the wire (MQTT payloads, JSON on any transport).
+
+An input payload is one JSON document in one of three forms, told apart by its shape
+alone, in this order:
+
+=========  ==========================================  ==============================
+form       shape                                       example
+=========  ==========================================  ==============================
+tagged     the bare strings ``"Unit"`` or              ``{"Int": 42}``, ``"Unknown"``
+           ``"Unknown"``; or an object with exactly
+           one key that is a D5.2 tag (``Int Float
+           Bool Str List Tuple Map Struct``)
+wrapped    an object with the key ``"value"`` and      ``{"value": 7}``,
+           otherwise at most ``"deferred"`` (bool)     ``{"value": null, "deferred": true}``
+plain      anything else                               ``7``, ``"a"``, ``[1, 2]``
+=========  ==========================================  ==============================
+
+A wrapped value is read as plain JSON (so ``{"value": {"Int": 1}}`` is the map
+``{"Int": 1}``: wrap a plain value that would look tagged); ``"deferred": true`` makes it
+⊥. Plain ``null`` is Unit. A tagged-looking document that is not a valid tagged value
+(``{"Int": "x"}``) is rejected, never read as a plain map.
+
+Outputs are written wrapped, ``{"value": <plain JSON>}`` (⊥ as
+``{"value": null, "deferred": true}``), so one checker's outputs feed another's inputs;
+or, on request, tagged (``{"Int": 42}``, ⊥ as ``"Unknown"``). NoVal is never written.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Final
+
+import msgspec
+
+from ..values import BOTTOM, NOVAL, ValueError_, from_plain, from_tagged, to_plain, to_tagged
+
+__all__ = [
+    "MAX_PAYLOAD",
+    "TAGS",
+    "CodecError",
+    "decode_json",
+    "decode_payload",
+    "encode_value",
+    "payload_form",
+]
+
+MAX_PAYLOAD: Final = 1 << 20
+"""Largest input payload taken (bytes); larger ones are rejected."""
+
+TAGS: Final = frozenset({"Int", "Float", "Bool", "Str", "List", "Tuple", "Map", "Struct"})
+_BARE_TAGS: Final = frozenset({"Unit", "Unknown"})
+_WRAP_KEYS: Final = frozenset({"value", "deferred"})
+
+_decode = msgspec.json.Decoder().decode
+_encode = msgspec.json.Encoder().encode
+
+
+class CodecError(ValueError):
+    """A payload that is not a stream value; the message says why and what would be."""
+
+
+def payload_form(doc: Any) -> str:
+    """``"tagged"``, ``"wrapped"`` or ``"plain"``: which form a decoded JSON document is."""
+    if type(doc) is str:
+        return "tagged" if doc in _BARE_TAGS else "plain"
+    if type(doc) is dict:
+        if len(doc) == 1 and next(iter(doc)) in TAGS:
+            return "tagged"
+        if "value" in doc and doc.keys() <= _WRAP_KEYS:
+            return "wrapped"
+    return "plain"
+
+
+def decode_json(doc: Any) -> Any:
+    """A decoded JSON document (any of the three forms) to a stream value."""
+    form = payload_form(doc)
+    try:
+        if form == "tagged":
+            return from_tagged(doc)
+        if form == "wrapped":
+            deferred = doc.get("deferred", False)
+            if type(deferred) is not bool:
+                raise CodecError(
+                    f'"deferred" must be true or false, got {deferred!r} in wrapped value {doc!r}'
+                )
+            return BOTTOM if deferred else from_plain(doc["value"])
+        return from_plain(doc)
+    except ValueError_ as exc:
+        raise CodecError(f"{form} value rejected: {exc}") from None
+
+
+def decode_payload(payload: bytes | bytearray | str) -> Any:
+    """A payload (UTF-8 JSON) to a stream value; :class:`CodecError` saying why not."""
+    size = len(payload)
+    if size > MAX_PAYLOAD:
+        raise CodecError(f"payload of {size} bytes is larger than the {MAX_PAYLOAD} allowed")
+    if not size or not (payload.strip() if isinstance(payload, str) else bytes(payload).strip()):
+        raise CodecError('empty payload; send a JSON value: 42, {"Int": 42} or {"value": 42}')
+    try:
+        doc = _decode(payload)
+    except msgspec.DecodeError as exc:
+        text = bytes(payload[:60]) if not isinstance(payload, str) else payload[:60]
+        raise CodecError(
+            f"payload is not JSON ({exc}): {text!r}; send a JSON value: 42, "
+            '{"Int": 42} or {"value": 42}'
+        ) from None
+    return decode_json(doc)
+
+
+def _finite(v: Any) -> Any:
+    """JSON has no NaN or infinity: they are written as null."""
+    if type(v) is float and not math.isfinite(v):
+        return None
+    if type(v) is list:
+        return [_finite(x) for x in v]
+    if type(v) is dict:
+        return {k: _finite(x) for k, x in v.items()}
+    return v
+
+
+def encode_value(value: object, *, tagged: bool = False) -> bytes:
+    """An output value as a payload: ``{"value": ...}`` (default) or the tagged form.
+    ``ValueError`` for NoVal, which is never written."""
+    if value is NOVAL:
+        raise ValueError("NoVal is never published")
+    if tagged:
+        return _encode(_finite(to_tagged(value)))
+    if value is BOTTOM:
+        return _encode({"value": None, "deferred": True})
+    return _encode({"value": _finite(to_plain(value))})

@@ -1,0 +1,347 @@
+"""The checker on the RAP fabric (Zenoh, or the in-memory fabric in tests).
+
+Inputs, by default (``FabricConfig.default_inputs``), are a system's trace records and
+events. Each message is one tick (under the ``message`` policy) setting these streams;
+a message that sets none of the running spec's inputs is not a tick:
+
+=====================================  ==================  ============================
+message                                stream              value
+=====================================  ==================  ============================
+``rap.StageTrace`` on                  ``stage``           the stage (Str), when the
+``rap/<system>/trace/<node>``                              node declares one
+                                       ``phase``           ``"start"`` or ``"end"``
+                                       ``node``            the node id (Str)
+                                       ``handler``         the handler's name (Str)
+                                       ``cycle``           the cycle id, hex (Str)
+                                       ``ok``              the handler did not fail (Bool)
+                                       ``<stage>_<phase>``  the cycle id, hex, e.g.
+                                                           ``analyse_start``
+``rap.KnowledgeAccess`` on             ``kb_op``           ``read``, ``write``, ``delete``
+``rap/<system>/trace/<node>``          ``kb_key``          the knowledge key (Str)
+                                       ``kb_node``         the node id (Str)
+                                       ``cycle``           the cycle id, hex, when known
+                                       ``kb_<op>``         the key, e.g. ``kb_write``
+any event on                           ``event``           the event name (Str)
+``rap/<system>/event/<name>``          ``cycle``           the cycle id, hex (the
+                                                           envelope's own uid for a root)
+                                       ``ev_<name>``       the cycle id, hex; ``-`` and
+                                                           ``/`` in the name become ``_``
+                                                           (``ev_new_plan``)
+... whose body is a ``rap.Verdict``    ``verdict_approved``  Bool
+                                       ``verdict_plan``    the plan uid, hex (Str)
+=====================================  ==================  ============================
+
+Explicit inputs (``FabricConfig.inputs``): ``stream <- key expression``, the value being
+the message body as plain data (bytes as hex strings), or one ``field`` of it. A sample
+matched both by the defaults and by explicit inputs sets all of their streams in one
+tick. With the default inputs the transport subscribes to ``rap/<system>/**`` once, so a
+sender's records and events keep their order; explicit inputs outside the system get a
+subscription each (no order is promised between different subscriptions). Every sample
+is an envelope, opened with :class:`rap_sdk.Opener` (duplicates
+dropped); one that cannot be opened or read is rejected, counted and logged.
+
+Outputs: each output that ticks is published as a ``rap.TrustOutput`` on
+``rap/<system>/trust/<stream>``, sealed by :class:`rap_sdk.Sealer` (source: the node id),
+so any node can subscribe to it typed.
+
+Hot swap: a queryable on ``rap/<system>/admin/<node>/swap`` (``node`` defaults to
+``trust_checker``). The query's payload is a sealed ``rap.TrustSpecUpdate``; the reply a
+sealed ``rap.TrustSpecStatus`` (``ok``, or the spec's ``problems``; the old spec keeps
+running then). A malformed request gets an error reply saying why.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Final
+
+import anyio
+import msgspec
+from anyio.abc import TaskStatus
+from rap_schemas import (
+    KnowledgeAccess,
+    StageTrace,
+    TrustOutput,
+    TrustSpecStatus,
+    TrustSpecUpdate,
+    Verdict,
+    keys,
+)
+from rap_sdk import Fabric, InboxPolicy, Opener, Overflow, QueryRequest, RapError, Reply, Sealer
+from rap_sdk.envelope import TypedEnvelope, typed_decoder
+from rap_sdk.errors import QueryError, RejectedSample
+from rap_sdk.fabric import Sample, Subscription
+from rap_sdk.keyexpr import intersects, validate
+
+from ..config import FabricConfig
+from ..values import BOTTOM, ValueError_, from_plain, to_plain
+from .ports import OutputLike
+from .session import Session
+from .ticks import Arrival
+
+__all__ = ["FabricStats", "FabricTransport", "default_values", "event_stream_name"]
+
+log = logging.getLogger(__name__)
+
+_trace_body = msgspec.msgpack.Decoder(StageTrace).decode
+_access_body = msgspec.msgpack.Decoder(KnowledgeAccess).decode
+_verdict_body = msgspec.msgpack.Decoder(Verdict).decode
+_any_body = msgspec.msgpack.Decoder().decode
+_open_update = typed_decoder(TrustSpecUpdate)
+SWAP_TIMEOUT: Final = 4.0
+"""Seconds a swap query waits for the session (under Zenoh's 5 s handler deadline)."""
+_INBOX: Final = InboxPolicy(capacity=4096, overflow=Overflow.FIFO, block=False)
+
+
+def event_stream_name(name: str) -> str:
+    """``new-plan`` -> ``ev_new_plan`` (``-`` and ``/`` become ``_``)."""
+    return "ev_" + name.replace("-", "_").replace("/", "_")
+
+
+def _plain(x: Any) -> Any:
+    """Untyped msgpack data to plain JSON-like data: bytes become hex strings."""
+    if isinstance(x, bytes | bytearray | memoryview):
+        return bytes(x).hex()
+    if isinstance(x, list):
+        return [_plain(e) for e in x]
+    if isinstance(x, dict):
+        return {str(k): _plain(v) for k, v in x.items()}
+    return x
+
+
+def default_values(
+    kind: keys.Kind, name: str, env: TypedEnvelope[msgspec.Raw]
+) -> dict[str, object]:
+    """The streams a trace record or an event sets (the table in the module docstring).
+    Raises ``msgspec.ValidationError``/``DecodeError`` for a body that is not what its
+    envelope says."""
+    out: dict[str, object] = {}
+    if kind is keys.Kind.TRACE:
+        if env.type == StageTrace.TYPE:
+            rec = _trace_body(env.body)
+            cycle = rec.cycle.hex()
+            out.update(phase=rec.phase, node=rec.node, handler=rec.handler, cycle=cycle, ok=rec.ok)
+            if rec.stage is not None:
+                out["stage"] = str(rec.stage)
+                out[f"{rec.stage}_{rec.phase}"] = cycle
+        elif env.type == KnowledgeAccess.TYPE:
+            acc = _access_body(env.body)
+            out.update(kb_op=acc.op, kb_key=acc.key, kb_node=acc.node)
+            out[f"kb_{acc.op}"] = acc.key
+            if acc.cycle is not None:
+                out["cycle"] = acc.cycle.hex()
+    elif kind is keys.Kind.EVENT:
+        cycle = (env.cycle if env.cycle is not None else env.uid).hex()
+        out.update(event=name, cycle=cycle)
+        out[event_stream_name(name)] = cycle
+        if env.type == Verdict.TYPE:
+            verdict = _verdict_body(env.body)
+            out.update(verdict_approved=verdict.approved, verdict_plan=verdict.plan_uid.hex())
+    return out
+
+
+@dataclass(frozen=True, slots=True)
+class _Route:
+    """What a concrete key feeds: a default family (trace or event) and explicit inputs."""
+
+    kind: keys.Kind | None
+    name: str
+    explicit: tuple[tuple[str, str | None], ...]
+
+
+@dataclass(slots=True)
+class FabricStats:
+    samples: int = 0
+    duplicates: int = 0
+    published: int = 0
+    dropped: int = 0
+    """Outputs that could not be published (fabric closing, inbox full past the deadline)."""
+    swap_queries: int = 0
+
+
+class FabricTransport:
+    """Feeds ``session`` from the fabric and publishes its outputs there (it adds itself
+    to the session's sinks). Run :meth:`run` in a task group, next to ``session.run``."""
+
+    def __init__(self, session: Session, fabric: Fabric, config: FabricConfig) -> None:
+        self.session = session
+        self.fabric = fabric
+        self.config = config
+        self.stats = FabricStats()
+        self.system = config.system
+        keys.system_pattern(config.system)  # validates the system name
+        self.swap_key = keys.admin(config.system, config.node, "swap")
+        for stream, inp in config.inputs.items():
+            try:
+                validate(inp.key)
+            except ValueError as exc:
+                raise ValueError(f"fabric input {stream!r}: {exc}") from None
+        self._sealer = Sealer(config.node, session.clock)
+        self._opener = Opener()
+        self._out_keys: dict[str, str] = {}
+        self._routes: dict[str, _Route] = {}
+        session.sinks.append(self)
+
+    @property
+    def key_exprs(self) -> list[str]:
+        """What the transport subscribes to: with the default inputs, the whole system in
+        one subscription (so that one sender's trace records and events keep their
+        order), plus each explicit input's key outside it."""
+        exprs: list[str] = []
+        inside = f"{keys.ROOT}/{self.system}/"
+        if self.config.default_inputs:
+            exprs.append(keys.system_pattern(self.system))
+        for inp in self.config.inputs.values():
+            covered = self.config.default_inputs and inp.key.startswith(inside)
+            if not covered and inp.key not in exprs:
+                exprs.append(inp.key)
+        return exprs
+
+    def _route(self, key: str) -> _Route:
+        route = self._routes.get(key)
+        if route is None:
+            kind: keys.Kind | None = None
+            name = ""
+            if self.config.default_inputs:
+                try:
+                    parsed = keys.parse(key)
+                except keys.KeyError_:
+                    parsed = None
+                if (
+                    parsed is not None
+                    and parsed.system == self.system
+                    and parsed.kind in (keys.Kind.TRACE, keys.Kind.EVENT)
+                ):
+                    kind, name = parsed.kind, parsed.name
+            explicit = tuple(
+                (stream, inp.field)
+                for stream, inp in self.config.inputs.items()
+                if intersects(inp.key, key)
+            )
+            if len(self._routes) >= 4096:
+                self._routes.clear()
+            route = self._routes[key] = _Route(kind, name, explicit)
+        return route
+
+    async def run(self, *, task_status: TaskStatus[None] = anyio.TASK_STATUS_IGNORED) -> None:
+        """Subscribe and serve the swap queryable, then take samples until cancelled."""
+        subs: list[Subscription] = []
+        queryable = self.fabric.serve(self.swap_key, self._on_swap)
+        try:
+            subs = [self.fabric.subscribe(k, _INBOX) for k in self.key_exprs]
+            async with anyio.create_task_group() as tg:
+                for sub in subs:
+                    tg.start_soon(self._pump, sub)
+                log.info(
+                    "fabric: reading %s; hot swap on %s",
+                    ", ".join(self.key_exprs) or "nothing",
+                    self.swap_key,
+                )
+                task_status.started()
+        finally:
+            for sub in subs:
+                sub.close()
+            queryable.undeclare()
+
+    async def _pump(self, sub: Subscription) -> None:
+        async for sample in sub:
+            await self._on_sample(sample)
+
+    async def _on_sample(self, sample: Sample) -> None:
+        key = sample.key
+        route = self._route(key)
+        if route.kind is None and not route.explicit:
+            return  # a key no input reads (data, knowledge, logs, our own outputs)
+        self.stats.samples += 1
+        try:
+            env = self._opener.open(key, sample.payload)
+        except RejectedSample as exc:
+            self.session.reject(key, exc.reason)
+            return
+        if env is None:
+            self.stats.duplicates += 1
+            return
+        try:
+            values = self._values(route, env)
+        except (msgspec.ValidationError, msgspec.DecodeError) as exc:
+            self.session.reject(key, f"invalid {env.type} body from {env.source!r}: {exc}")
+            return
+        except ValueError_ as exc:
+            self.session.reject(key, f"{env.type} from {env.source!r}: {exc}")
+            return
+        if values:
+            await self.session.submit(Arrival(values, self.session.clock.time_ns(), key))
+
+    def _values(self, route: _Route, env: TypedEnvelope[msgspec.Raw]) -> dict[str, object]:
+        values: dict[str, object] = {}
+        if route.kind is not None:
+            values.update(default_values(route.kind, route.name, env))
+        if route.explicit:
+            body = _plain(_any_body(env.body))
+            for stream, fld in route.explicit:
+                if fld is None:
+                    values[stream] = from_plain(body)
+                elif isinstance(body, dict) and fld in body:
+                    values[stream] = from_plain(body[fld])
+                else:
+                    have = sorted(body) if isinstance(body, dict) else "none"
+                    raise ValueError_(
+                        f"stream {stream!r} reads field {fld!r}, which the body does not "
+                        f"have (fields: {have})"
+                    )
+        return values
+
+    # -- hot swap --------------------------------------------------------------------
+
+    async def _on_swap(self, request: QueryRequest) -> list[Reply]:
+        self.stats.swap_queries += 1
+        try:
+            env = _open_update(request.payload)
+        except (msgspec.ValidationError, msgspec.DecodeError) as exc:
+            self.session.reject(self.swap_key, f"swap request: {exc}")
+            raise QueryError(
+                f"swap request refused: {exc}; send a sealed rap.TrustSpecUpdate"
+            ) from None
+        if env.type != TrustSpecUpdate.TYPE:
+            raise QueryError(
+                f"swap request refused: expected type {TrustSpecUpdate.TYPE}, got {env.type!r}"
+            )
+        update: TrustSpecUpdate = env.body
+        status = await self.session.request_swap(
+            update.spec,
+            path=update.path,
+            origin=f"{self.swap_key} from {env.source!r}",
+            timeout=SWAP_TIMEOUT,
+        )
+        payload, _ = self._sealer.seal_message(self.swap_key, status, cause=env.uid)
+        return [Reply(self.swap_key, payload)]
+
+    # -- the sink --------------------------------------------------------------------
+
+    async def outputs(self, outs: Sequence[OutputLike]) -> None:
+        for out in outs:
+            key = self._out_keys.get(out.stream)
+            if key is None:
+                key = self._out_keys[out.stream] = keys.trust(self.system, out.stream)
+            deferred = out.value is BOTTOM
+            msg = TrustOutput(
+                stream=out.stream,
+                tick=out.tick,
+                ts=out.ts_ns if out.ts_ns is not None else self.session.clock.time_ns(),
+                value=None if deferred else to_plain(out.value),
+                deferred=deferred,
+            )
+            payload, _ = self._sealer.seal_message(key, msg)
+            try:
+                await self.fabric.publish(key, payload, timeout=self.config.publish_timeout)
+            except RapError as exc:
+                self.stats.dropped += 1
+                if self.stats.dropped <= 5 or self.stats.dropped % 1000 == 0:
+                    log.warning("fabric: output on %s not published: %s", key, exc)
+                continue
+            self.stats.published += 1
+
+    async def status(self, status: TrustSpecStatus) -> None:
+        """Swap outcomes reach the querier in its reply (and the log)."""

@@ -1,0 +1,177 @@
+"""Helpers of the I/O tests: a hand-written monitor, a recording sink, a mosquitto of the
+test's own. (No tests here.)"""
+
+from __future__ import annotations
+
+import math
+import subprocess
+from collections.abc import AsyncIterator, Sequence
+from contextlib import asynccontextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import anyio
+from anyio.abc import Process, TaskStatus
+from anyio.streams.text import TextReceiveStream
+from rap_schemas import TrustSpecStatus
+from rap_sdk.testing import free_port, require_binary
+from trust_checker.errors import EvalError, InputError, Problem, SpecError
+from trust_checker.io.ports import OutputLike
+from trust_checker.values import BOTTOM
+
+
+@dataclass(frozen=True)
+class FakeSpec:
+    inputs: tuple[str, ...]
+    outputs: tuple[str, ...]
+    period_ns: int | None = None
+
+
+@dataclass(frozen=True)
+class Out:
+    stream: str
+    tick: int
+    value: object
+    ts_ns: int | None
+
+
+class FakeMonitor:
+    """Every output is the running total of the Int inputs so far (history that a swap
+    carries over); an input "bottom" makes every output ⊥; the Str input "boom" fails the
+    tick; a value that is not an Int or Str is refused (InputError)."""
+
+    def __init__(self, spec: FakeSpec, total: int = 0, tick: int = 0) -> None:
+        self.spec = spec
+        self.total = total
+        self.tick = tick
+        self.steps: list[tuple[dict[str, object], int | None]] = []
+        self._periodic_next: int | None = None
+
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        return self.spec.inputs
+
+    @property
+    def outputs(self) -> tuple[str, ...]:
+        return self.spec.outputs
+
+    def step(self, inputs: dict[str, object], ts_ns: int | None = None) -> list[Out]:
+        for name, v in inputs.items():
+            if name not in self.spec.inputs:
+                raise InputError(f"unknown input {name!r}")
+            if type(v) not in (int, str, bool):
+                raise InputError(f"input {name!r}: not an Int: {v!r}")
+        self.steps.append((dict(inputs), ts_ns))
+        tick = self.tick
+        self.tick += 1
+        if "boom" in inputs.values():
+            raise EvalError("boom", stream=self.spec.outputs[0], tick=tick)
+        value: object = BOTTOM if "bottom" in inputs.values() else None
+        self.total += sum(v for v in inputs.values() if type(v) is int)
+        if value is None:
+            value = self.total
+        return [Out(o, tick, value, ts_ns) for o in self.spec.outputs]
+
+    def swap(self, spec: Any) -> FakeMonitor:
+        assert isinstance(spec, FakeSpec)
+        return FakeMonitor(spec, self.total, self.tick)
+
+    def next_due(self, ts: int) -> int | None:
+        p = self.spec.period_ns
+        if p is None:
+            return None
+        return (ts // p + 1) * p
+
+
+def fake_loader(text: str, path: str) -> FakeSpec:
+    """``in a b`` / ``out s`` lines; anything else is a SpecError at its line."""
+    ins: list[str] = []
+    outs: list[str] = []
+    problems: list[Problem] = []
+    for n, line in enumerate(text.splitlines(), 1):
+        kind, _, names = line.partition(" ")
+        if kind == "in":
+            ins += names.split()
+        elif kind == "out":
+            outs += names.split()
+        elif line.strip():
+            problems.append(Problem(path, n, 1, f"unexpected {line!r}", line, "write in/out"))
+    if problems:
+        raise SpecError(problems)
+    return FakeSpec(tuple(ins), tuple(outs))
+
+
+@dataclass
+class RecordingSink:
+    outs: list[OutputLike] = field(default_factory=list)
+    statuses: list[TrustSpecStatus] = field(default_factory=list)
+    _changed: anyio.Event = field(default_factory=anyio.Event)
+
+    async def outputs(self, outs: Sequence[OutputLike]) -> None:
+        self.outs.extend(outs)
+        self._changed.set()
+
+    async def status(self, status: TrustSpecStatus) -> None:
+        self.statuses.append(status)
+        self._changed.set()
+
+    async def wait_for(self, n_outs: int = 0, n_statuses: int = 0, timeout: float = 5.0) -> None:
+        with anyio.fail_after(timeout):
+            while len(self.outs) < n_outs or len(self.statuses) < n_statuses:
+                self._changed = anyio.Event()
+                await self._changed.wait()
+
+
+class Mosquitto:
+    """A mosquitto broker of the test's own on a free loopback port. Its log is read
+    all along (so that the pipe never fills) and kept for failure messages."""
+
+    def __init__(self, directory: Path, port: int | None = None) -> None:
+        self.binary = require_binary("mosquitto", hint="apt-get install mosquitto")
+        self.port = port or free_port()
+        self.conf = directory / "mosquitto.conf"
+        self.conf.write_text(
+            f"listener {self.port} 127.0.0.1\nallow_anonymous true\npersistence false\n"
+            "log_dest stderr\nlog_type all\n",
+            encoding="utf-8",
+        )
+        self.log = ""
+        self._proc: Process | None = None
+
+    async def run(self, *, task_status: TaskStatus[None]) -> None:
+        self._proc = proc = await anyio.open_process(
+            [self.binary, "-c", str(self.conf)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT
+        )
+        assert proc.stdout is not None
+        started = False
+        with anyio.fail_after(10) as scope:
+            async for chunk in TextReceiveStream(proc.stdout):
+                self.log = (self.log + chunk)[-20_000:]
+                if not started and " running" in self.log:
+                    started = True
+                    scope.deadline = math.inf
+                    task_status.started()
+        if not started:
+            raise RuntimeError(f"mosquitto did not start:\n{self.log}")
+
+    async def stop(self) -> None:
+        if self._proc is not None:
+            proc, self._proc = self._proc, None
+            if proc.returncode is None:
+                proc.terminate()
+            with anyio.fail_after(10):
+                await proc.wait()
+            await proc.aclose()
+
+
+@asynccontextmanager
+async def mosquitto(directory: Path, port: int | None = None) -> AsyncIterator[Mosquitto]:
+    server = Mosquitto(directory, port)
+    async with anyio.create_task_group() as tg:
+        try:
+            await tg.start(server.run)
+            yield server
+        finally:
+            with anyio.CancelScope(shield=True):
+                await server.stop()
