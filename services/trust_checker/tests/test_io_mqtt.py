@@ -17,7 +17,7 @@ from trust_checker.io.mqtt import MqttTransport
 from trust_checker.io.session import Session
 from trust_checker.io.ticks import MESSAGE, TickPolicy
 
-from .test_io_support import FakeMonitor, FakeSpec, fake_loader, mosquitto
+from services.trust_checker.tests.test_io_support import FakeMonitor, FakeSpec, fake_loader, mosquitto
 
 pytestmark = [pytest.mark.anyio]
 
@@ -203,9 +203,11 @@ async def test_real_monitor_hot_swap_keeps_history_and_refuses_a_bad_spec(
         await peer.send("x", "5")  # x[1] is 3, from before the swap
         await peer.send("x", '"Unknown"')  # ⊥ in, ⊥ out
         await peer.send("x", '{"Str": "no"}')  # refused: x is an Int
-        await peer.wait(7)
+        await peer.send("x", "6")  # its output shows the refusal was handled first
+        await peer.wait(8)
     assert peer.on("prev") == [{"value": 0}, {"value": 1}, {"value": 2}]
-    assert peer.on("sum") == [{"value": 8}, {"value": None, "deferred": True}]
+    # the refused input took no tick: x[1] is the ⊥ before it, defaulted to 0
+    assert peer.on("sum") == [{"value": 8}, {"value": None, "deferred": True}, {"value": 6}]
     bad, good = peer.on("trust/status")
     assert bad["ok"] is False
     assert bad["problems"][0].startswith("<mqtt:trust/spec>:3:")
