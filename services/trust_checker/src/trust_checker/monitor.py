@@ -6,6 +6,12 @@ pushes last tick's held values into the bounded histories, then runs one precomp
 the computed streams in dependency order (offset-0 dependencies first), each updating its
 stateful nodes and storing its value. Nothing walks the syntax tree at run time.
 
+The plan depends on which inputs arrived (cached per set): a stream whose value is a
+pure function of the held values of streams it reads at offset 0 (no ``x[k]`` with
+k > 0, no stateful node, not a bare reference) is left out when none of those can have
+changed at this tick; its value from the last tick stands, as a lifted stream ticks on
+every tick. The first tick, and the tick after a run-time error, compute everything.
+
 Finite traces: :meth:`Monitor.finish` runs the drain ticks after the last input, during
 which a stream is computed while the tick is below ``T + extra`` (see the docs).
 Hot swap: :meth:`Monitor.swap` builds a monitor for a new spec that keeps the held
@@ -18,16 +24,30 @@ from __future__ import annotations
 import heapq
 from collections import deque
 from collections.abc import Callable, Iterator, Mapping
-from typing import NamedTuple, NoReturn
+from typing import Final, NamedTuple, NoReturn
 
-from trust_checker.compile import INF, Clock, Compiler, EvalNode, Node, StatefulNode, Stream
+from trust_checker.compile import (
+    INF,
+    Clock,
+    Compiler,
+    EvalNode,
+    Node,
+    StatefulNode,
+    Stream,
+    type_hint,
+)
 from trust_checker.errors import EvalError, InputError, Problem, SpecError
 from trust_checker.lang import ast
 from trust_checker.lang.check import Limits, check_spec, children
-from trust_checker.operators import Fault, Mismatch, conformer
-from trust_checker.values import NOVAL
+from trust_checker.operators import CALLS, Fault, Mismatch, conformer
+from trust_checker.values import INT_MAX, INT_MIN, NOVAL
 
 __all__ = ["Fired", "Monitor", "Output"]
+
+_PURE: Final = frozenset(CALLS) | {"default", "is_defined", "init"}
+"""Built-ins whose value is a function of their operands' held values (``init`` too,
+under an operator: a stream whose root is ``init`` passes NoVal through and is never
+skipped)."""
 
 
 class Output(NamedTuple):
@@ -48,33 +68,30 @@ class Fired(NamedTuple):
     ts_ns: int | None
 
 
-Runner = Callable[[], None]
+Runner = Callable[[], object]
+"""Computes a stream's value at this tick (updating its stateful nodes first)."""
 
 
 def _runner(s: Stream, updates: list[StatefulNode], cur: Callable[[], object]) -> Runner:
     widen = s.decl is not None and s.decl.type == ast.TName("Float")
     ups = tuple(u.update for u in updates)
     if not ups and not widen:
+        return cur
 
-        def run() -> None:
-            v = cur()
-            s.cur = v
-            if v is not NOVAL:
-                s.held = v
-
-        return run
-
-    def run_full() -> None:
+    def run_full() -> object:
         for u in ups:
             u()
         v = cur()
         if widen and type(v) is int:
             v = float(v)
-        s.cur = v
-        if v is not NOVAL:
-            s.held = v
+        return v
 
     return run_full
+
+
+_new_output = tuple.__new__
+"""``Output`` rows are built with ``tuple.__new__`` (the same tuple, without the Python
+call of the generated ``__new__``)."""
 
 
 def _walk(e: ast.Expr) -> Iterator[ast.Expr]:
@@ -107,9 +124,12 @@ class Monitor:
         self._streams: dict[str, Stream] = {}
         for d in spec.decls:
             self._streams[d.name] = Stream(d.name, d.kind, d)
-        self._in: dict[str, tuple[Stream, Callable[[object], object]]] = {
-            d.name: (self._streams[d.name], conformer(d.type)) for d in spec.decls if d.kind == "in"
-        }
+        # input name -> (stream, the type a value may have to be taken as it is (None:
+        # always conform it), conformer, the input's bit in a tick's mask)
+        self._in: dict[str, tuple[Stream, type | None, Callable[[object], object], int]] = {}
+        for i, d in enumerate(d for d in spec.decls if d.kind == "in"):
+            plain = type_hint(d) if isinstance(d.type, ast.TName) else None
+            self._in[d.name] = (self._streams[d.name], plain, conformer(d.type), 1 << i)
         # the computed streams: equations, then hidden ones (x[k] on an expression, triggers)
         self._exprs: dict[str, ast.Expr] = {eq.name: eq.expr for eq in spec.equations}
         self._owner: dict[str, str] = {}
@@ -161,14 +181,21 @@ class Monitor:
         if uses_eval:
             for d in spec.decls:
                 depth[d.name] = max(depth.get(d.name, 0), self._limits.dynamic_history)
-        self._hist_streams: list[Stream] = []
+        self._hist_push: list[tuple[Callable[[object], None], Stream]] = []
         for name, k in depth.items():
             s = self._streams[name]
             s.hist = deque([NOVAL] * k, maxlen=k)
-            self._hist_streams.append(s)
+            self._hist_push.append((s.hist.append, s))
         self._extras(computed)
         # compile, in order
         self._plan: list[tuple[Stream, Runner]] = []
+        self._reads: dict[str, frozenset[str] | None] = {}
+        """For a stream whose value is a pure function of the held values of the streams
+        it reads at offset 0: those streams (see :meth:`_plan_for`)."""
+        self._plans: dict[int, tuple[tuple[Stream, ...], list[tuple[Stream, Runner]]]] = {}
+        """Per mask of inputs: the inputs (streams) and the plan (see _plan_for)."""
+        self._full = True
+        """Compute every stream at the next tick (the first, and after an error)."""
         self.nodes: dict[str, Node] = {}
         """The compiled root node of every computed stream (for inspection)."""
         self._stateful: dict[str, list[StatefulNode]] = {}
@@ -184,6 +211,8 @@ class Monitor:
             self.nodes[name] = node
             self._stateful[name] = c.stateful
             self._plan.append((s, _runner(s, c.stateful, node.cur)))
+            if not c.stateful and node.cur is node.held:
+                self._reads[name] = self._reads0(self._exprs[name])
         if problems:
             raise SpecError(problems)
         self._outputs = [self._streams[n] for n in spec.outputs]
@@ -193,7 +222,10 @@ class Monitor:
             if s.decl is not None and s.decl.period_ns is not None
         ]
         self._due: dict[str, int] = {}
-        self._last_inputs: list[Stream] = []
+        self._last_mask = 0
+        self._last_arrived: tuple[Stream, ...] = ()
+        """The inputs given at the last tick (their ``cur`` goes back to NoVal)."""
+        self._after = bool(self._periodic or self._trigger_streams)
         finite = [s.extra for s in self._outputs if s.extra < INF]
         finite += [s.extra for s, _ in self._trigger_streams if s.extra < INF]
         self._drain = max(finite, default=0)
@@ -217,6 +249,43 @@ class Monitor:
                 out.update(n for n in e.scope if self._streams[n].kind != "in")
         for c in children(e):
             self._deps(c, out, unscoped, owner)
+
+    def _reads0(self, e: ast.Expr) -> frozenset[str] | None:
+        """The streams ``e`` reads at offset 0, or None if its value can change without
+        one of them changing (it reads the past: ``x[k]``, k > 0)."""
+        out: set[str] = set()
+        for x in _walk(e):
+            if isinstance(x, ast.Var):
+                out.add(x.name)
+            elif isinstance(x, ast.Index):
+                if x.offset > 0:
+                    return None
+                if not isinstance(x.expr, ast.Var):
+                    out.add(self._hidden_of[id(x)].name)
+            elif isinstance(x, ast.Eval | ast.Aggregate):
+                return None
+            elif isinstance(x, ast.Call) and x.func not in _PURE:
+                return None
+        return frozenset(out)
+
+    def _plan_for(self, mask: int) -> tuple[tuple[Stream, ...], list[tuple[Stream, Runner]]]:
+        """For a tick where the inputs in ``mask`` arrived: those inputs, and the streams
+        to compute: every stream but those that are a pure function of held values none
+        of which can have changed (their ``cur`` from the last tick stands: a lifted
+        stream ticks on every tick). Cached per mask."""
+        arrived = tuple(s for s, _, _, bit in self._in.values() if mask & bit)
+        changed = {s.name for s in arrived}
+        plan: list[tuple[Stream, Runner]] = []
+        for s, run in self._plan:
+            reads = self._reads.get(s.name)
+            if reads is None or not reads.isdisjoint(changed):
+                plan.append((s, run))
+                changed.add(s.name)
+        if len(plan) == len(self._plan):
+            plan = self._plan
+        if len(self._plans) < 4096:
+            self._plans[mask] = (arrived, plan)
+        return arrived, plan
 
     @staticmethod
     def _dependents(name: str, deps: dict[str, set[str]]) -> set[str]:
@@ -431,24 +500,81 @@ class Monitor:
                 f"the monitor has finished (finish() ran after tick {self._tick - 1}); "
                 "create a new Monitor to check another trace"
             )
-        pending: list[tuple[Stream, object]] = []
+        mask = 0
+        known = self._in
         for name, v in inputs.items():
-            entry = self._in.get(name)
+            entry = known.get(name)
             if entry is None:
                 self._unknown_input(name)
-            s, conform = entry
-            if v is NOVAL:
-                continue
-            try:
-                pending.append((s, conform(v)))
-            except Mismatch as m:
-                declared = s.decl.type if s.decl is not None else None
-                raise InputError(
-                    f"input {name!r} at tick {self._tick}: {m}"
-                    + (f" (declared {name}: {declared})" if declared is not None else "")
-                    + "; the tick was not taken, send a value of the declared type"
-                ) from None
-        return self._run(pending, ts_ns, self._plan, ())
+            s, plain, conform, bit = entry
+            if type(v) is not plain or (plain is int and not INT_MIN <= v <= INT_MAX):  # type: ignore[operator]
+                if v is NOVAL:
+                    continue
+                v = self._conform(s, name, v, conform)
+            s.next = v
+            mask |= bit
+        # the tick itself (as _run, on the fast path: a plan for this set of inputs)
+        if self.fired:
+            self.fired = []
+        if self._ran:
+            for push, h in self._hist_push:
+                push(h.held)
+        else:
+            self._ran = True
+        cached = self._plans.get(mask)
+        if cached is None:
+            cached = self._plan_for(mask)
+        arrived, plan = cached
+        if mask != self._last_mask:
+            for s in self._last_arrived:
+                s.cur = NOVAL
+            self._last_mask, self._last_arrived = mask, arrived
+        for s in arrived:
+            s.cur = s.held = s.next
+        if ts_ns is not None:
+            self._clock.ts = ts_ns
+        tick = self._tick
+        self._tick = tick + 1
+        if self._full:
+            plan = self._plan
+        current: Stream | None = None
+        try:
+            for current, run in plan:
+                v = run()
+                current.cur = v
+                if v is not NOVAL:
+                    current.held = v
+        except Fault as f:
+            self._abort(current, self._plan)
+            raise EvalError(
+                f.message, stream=self._name(current), tick=tick, where=f.where
+            ) from None
+        except (TypeError, ValueError, ArithmeticError) as x:  # a bug, but keep running
+            self._abort(current, self._plan)
+            raise EvalError(f"internal error: {x!r}", stream=self._name(current), tick=tick) from x
+        self._full = False
+        outs: list[Output] = []
+        add = outs.append
+        for o in self._outputs:
+            v = o.cur
+            if v is not NOVAL:
+                add(_new_output(Output, (o.name, tick, v, ts_ns)))
+        if self._after:
+            return self._after_tick(outs, tick, ts_ns, True)
+        return outs
+
+    def _conform(
+        self, s: Stream, name: str, v: object, conform: Callable[[object], object]
+    ) -> object:
+        try:
+            return conform(v)
+        except Mismatch as m:
+            declared = s.decl.type if s.decl is not None else None
+            raise InputError(
+                f"input {name!r} at tick {self._tick}: {m}"
+                + (f" (declared {name}: {declared})" if declared is not None else "")
+                + "; the tick was not taken, send a value of the declared type"
+            ) from None
 
     def _unknown_input(self, name: str) -> NoReturn:
         s = self._streams.get(name)
@@ -462,24 +588,18 @@ class Monitor:
             "(declare it with: in NAME: T)"
         )
 
-    def _run(
-        self,
-        pending: list[tuple[Stream, object]],
-        ts_ns: int | None,
-        plan: list[tuple[Stream, Runner]],
-        stopped: tuple[Stream, ...] | list[Stream],
+    def _drain_tick(
+        self, ts_ns: int | None, plan: list[tuple[Stream, Runner]], stopped: list[Stream]
     ) -> list[Output]:
+        """A drain tick (``finish``): no input; ``stopped`` streams do not tick."""
         self.fired = []
         if self._ran:
-            for h in self._hist_streams:
-                h.hist.append(h.held)  # type: ignore[union-attr]
+            for push, h in self._hist_push:
+                push(h.held)
         self._ran = True
-        for s in self._last_inputs:
+        for s in self._last_arrived:
             s.cur = NOVAL
-        self._last_inputs = []
-        for s, v in pending:
-            s.cur = s.held = v
-            self._last_inputs.append(s)
+        self._last_mask, self._last_arrived = 0, ()
         for s in stopped:
             s.cur = NOVAL
         if ts_ns is not None:
@@ -488,8 +608,11 @@ class Monitor:
         self._tick = tick + 1
         current: Stream | None = None
         try:
-            for current, run in plan:  # noqa: B007 (named for the error below)
-                run()
+            for current, run in plan:
+                v = run()
+                current.cur = v
+                if v is not NOVAL:
+                    current.held = v
         except Fault as f:
             self._abort(current, plan)
             raise EvalError(
@@ -499,7 +622,13 @@ class Monitor:
             self._abort(current, plan)
             raise EvalError(f"internal error: {x!r}", stream=self._name(current), tick=tick) from x
         outs = [Output(o.name, tick, o.cur, ts_ns) for o in self._outputs if o.cur is not NOVAL]
-        if self._periodic and ts_ns is not None and plan is self._plan:
+        return self._after_tick(outs, tick, ts_ns, False)
+
+    def _after_tick(
+        self, outs: list[Output], tick: int, ts_ns: int | None, live: bool
+    ) -> list[Output]:
+        """Periodic outputs (on a live tick) and the triggers that fired."""
+        if self._periodic and ts_ns is not None and live:
             outs = self._periodic_outputs(outs, tick, ts_ns)
         for ts, trig in self._trigger_streams:
             if ts.cur is True:
@@ -511,6 +640,7 @@ class Monitor:
 
     def _abort(self, failed: Stream | None, plan: list[tuple[Stream, Runner]]) -> None:
         """After a run-time error: the failed stream and every later one did not tick."""
+        self._full = True
         seen = failed is None
         for s, _ in plan:
             seen = seen or s is failed
@@ -560,7 +690,7 @@ class Monitor:
         for j in range(self._drain):
             plan = [(s, r) for s, r in self._plan if j < s.extra < INF]
             stopped = [s for s in computed if not j < s.extra < INF]
-            outs += self._run([], None, plan, stopped)
+            outs += self._drain_tick(None, plan, stopped)
         return outs
 
     def swap(self, new_spec: ast.Spec) -> Monitor:
