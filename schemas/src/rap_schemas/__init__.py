@@ -45,7 +45,7 @@ from .plan import (
     load_plan,
     parse_plan,
 )
-from .trust import TrustOutput, TrustSpecStatus, TrustSpecUpdate
+from .trust import TrustCause, TrustOutput, TrustSpecStatus, TrustSpecUpdate, TrustVerdict
 
 __all__ = [
     "MESSAGES",
@@ -84,9 +84,11 @@ __all__ = [
     "SpinPlan",
     "Stage",
     "StageTrace",
+    "TrustCause",
     "TrustOutput",
     "TrustSpecStatus",
     "TrustSpecUpdate",
+    "TrustVerdict",
     "Twist",
     "Verdict",
     "by_type",

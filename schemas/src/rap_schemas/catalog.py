@@ -20,7 +20,7 @@ from .lidar import (
 )
 from .maplek import KnowledgeAccess, Rejection, StageTrace
 from .message import Message
-from .trust import TrustOutput, TrustSpecStatus, TrustSpecUpdate
+from .trust import TrustOutput, TrustSpecStatus, TrustSpecUpdate, TrustVerdict
 
 __all__ = ["MESSAGES", "by_type"]
 
@@ -41,6 +41,7 @@ MESSAGES: Final[tuple[type[Message], ...]] = (
     TrustOutput,
     TrustSpecStatus,
     TrustSpecUpdate,
+    TrustVerdict,
     Twist,
     Verdict,
 )

@@ -29,7 +29,12 @@ from trust_checker.config import FabricConfig, FabricInput
 from trust_checker.io.fabric import FabricTransport, event_stream_name
 from trust_checker.io.session import Session
 
-from services.trust_checker.tests.test_io_support import FakeMonitor, FakeSpec, RecordingSink, fake_loader
+from services.trust_checker.tests.test_io_support import (
+    FakeMonitor,
+    FakeSpec,
+    RecordingSink,
+    fake_loader,
+)
 
 pytestmark = [pytest.mark.anyio, pytest.mark.zenoh]
 
@@ -68,7 +73,9 @@ class Peer:
         await self.fabric.publish(key, payload)
 
 
-def trace(phase: str, stage: Stage | None = Stage.ANALYSE, ok: bool = True) -> StageTrace:
+def trace(
+    phase: str, stage: Stage | None = Stage.ANALYSE, ok: bool = True, sent: list[str] | None = None
+) -> StageTrace:
     return StageTrace(
         node="analysis",
         handler="detect",
@@ -79,6 +86,7 @@ def trace(phase: str, stage: Stage | None = Stage.ANALYSE, ok: bool = True) -> S
         ts=1,
         stage=stage,
         ok=ok,
+        sent=sent or [],
     )
 
 
@@ -118,13 +126,17 @@ async def test_trace_records_and_events_by_default() -> None:
         "node",
         "cycle",
         "ok",
+        "acted",
         "analyse_start",
         "analyse_end",
         "kb_op",
         "kb_key",
         "kb_node",
         "kb_write",
+        "kb_read",
+        "kb_cycle",
         "event",
+        "ev_cycle",
         "ev_new_plan",
         "verdict_approved",
         "verdict_plan",
@@ -133,16 +145,22 @@ async def test_trace_records_and_events_by_default() -> None:
     mon = FakeMonitor(FakeSpec(ins, ("s",)))
     async with checker(mon) as (session, _transport, peer, _sink):
         await peer.send(keys.trace(SYS, "analysis"), trace("start"))
-        await peer.send(keys.trace(SYS, "analysis"), trace("end", ok=False))
+        await peer.send(
+            keys.trace(SYS, "analysis"),
+            trace("end", ok=False, sent=[keys.event(SYS, "anomaly"), keys.data(SYS, "tb1/x")]),
+        )
+        await peer.send(keys.trace(SYS, "sim"), trace("end", stage=None))
         access = KnowledgeAccess(
             node="plan", op="write", key="plan/x", version=3, ts=1, cycle=CYCLE
         )
         await peer.send(keys.trace(SYS, "plan"), access)
+        outside = KnowledgeAccess(node="plan", op="read", key="plan/x", version=3, ts=1)
+        await peer.send(keys.trace(SYS, "plan"), outside, cycle=None)  # outside a handler
         await peer.send(keys.event(SYS, "new-plan"), Empty())
         verdict = Verdict(plan_uid=b"\xab" * 16, approved=True, legitimator="l", ts=1)
         await peer.send(keys.event(SYS, "verdict"), verdict)
         await peer.send(keys.data(SYS, "scan"), Empty())  # not read by default
-        outs = await peer.wait(5)
+        outs = await peer.wait(7)
         await session.wait_idle()
     hexc = CYCLE.hex()
     steps = [values for values, _ts in mon.steps]
@@ -154,6 +172,7 @@ async def test_trace_records_and_events_by_default() -> None:
             "handler": "detect",
             "cycle": hexc,
             "ok": True,
+            "acted": False,
             "analyse_start": hexc,
         },
         {
@@ -163,21 +182,43 @@ async def test_trace_records_and_events_by_default() -> None:
             "handler": "detect",
             "cycle": hexc,
             "ok": False,
+            "acted": True,  # it published on a data topic
             "analyse_end": hexc,
+        },
+        {  # a node without a stage: stage "" and no <stage>_<phase>
+            "stage": "",
+            "phase": "end",
+            "node": "analysis",
+            "handler": "detect",
+            "cycle": hexc,
+            "ok": True,
+            "acted": False,
         },
         {
             "kb_op": "write",
             "kb_key": "plan/x",
             "kb_node": "plan",
             "kb_write": "plan/x",
-            "cycle": hexc,
+            "kb_cycle": hexc,
         },
-        {"event": "new-plan", "cycle": hexc, "ev_new_plan": hexc},
-        {"event": "verdict", "cycle": hexc, "verdict_approved": True, "verdict_plan": "ab" * 16},
+        {
+            "kb_op": "read",
+            "kb_key": "plan/x",
+            "kb_node": "plan",
+            "kb_read": "plan/x",
+            "kb_cycle": "",
+        },
+        {"event": "new-plan", "ev_cycle": hexc, "ev_new_plan": hexc},
+        {
+            "event": "verdict",
+            "ev_cycle": hexc,
+            "verdict_approved": True,
+            "verdict_plan": "ab" * 16,
+        },
     ]
     assert all(isinstance(ts, int) and ts > 0 for _v, ts in mon.steps)
-    assert [(o.stream, o.tick) for o in outs] == [("s", i) for i in range(5)]
-    assert peer.sources == ["trust_checker"] * 5
+    assert [(o.stream, o.tick) for o in outs] == [("s", i) for i in range(7)]
+    assert peer.sources == ["trust_checker"] * 7
     assert session.stats.rejected == 0
 
 

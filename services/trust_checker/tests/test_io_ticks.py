@@ -18,7 +18,12 @@ from trust_checker.io.ticks import (
 )
 from trust_checker.values import BOTTOM
 
-from services.trust_checker.tests.test_io_support import FakeMonitor, FakeSpec, RecordingSink, fake_loader
+from services.trust_checker.tests.test_io_support import (
+    FakeMonitor,
+    FakeSpec,
+    RecordingSink,
+    fake_loader,
+)
 
 
 class StepClock:

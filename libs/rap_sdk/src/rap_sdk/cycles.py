@@ -60,8 +60,9 @@ class Topology:
         for node in nodes:
             names.add(node.name)
             for route in node.routes:
-                build = keys.data if route.kind == "data" else keys.event
-                key = build(system, route.name)
+                if not route.traced:  # no end record balances it (trust verdict routes)
+                    continue
+                key = route.key(system)
                 subs[key] = subs.get(key, 0) + 1
         return cls(system, subs, frozenset(names))
 

@@ -26,6 +26,21 @@ fresh (``max_age`` s from the plan's creation, on the runtime's clock) and whose
 was neither executed before nor superseded by a newer executed plan; any other verdict
 is refused, counted in :class:`GateStats`, logged, and answered with ``plan-rejected``
 (except a replayed approval of a plan that did run: there is nothing to replan).
+
+Trust-checker verdicts can veto (DESIGN §5): a :class:`TrustGuard` names guard streams,
+Bool outputs of trust specs published on ``rap/<system>/trust/<stream>``::
+
+    async def stop(ctx: Context, reason: str) -> None:
+        await ctx.publish("tb1/spin_config", SpinPlan(commands=[]))   # nominal behaviour
+
+    guard = TrustGuard(streams={"anomaly_deadline_ok"}, safe_action=stop)
+    gate = ApprovalGate(legitimators={"legitimate"}, guard=guard)
+
+While any guard stream's latest verdict is false, the gate refuses approved plans
+(``GateStats.vetoed``; ``plan-rejected`` with the reason naming the stream and tick);
+when the guard closes (a first stream turns false) its safe action runs once. Without
+a safe action the loop only stops adapting (keeps its nominal behaviour); a guard with
+no streams never vetoes (continue). When every stream is true again plans flow again.
 """
 
 from __future__ import annotations
@@ -36,9 +51,11 @@ from collections.abc import Awaitable, Callable, Collection
 from dataclasses import dataclass
 from typing import TypeVar
 
-from rap_schemas import PlanProposal, SpinPlan, Verdict
+import anyio
+from rap_schemas import PlanProposal, SpinPlan, TrustOutput, Verdict, keys
 
 from .envelope import new_uid
+from .inbox import InboxPolicy
 from .node import Node
 from .runtime import Context
 
@@ -48,6 +65,9 @@ __all__ = [
     "VERDICT",
     "ApprovalGate",
     "GateStats",
+    "GuardStats",
+    "SafeAction",
+    "TrustGuard",
     "legitimate",
     "propose",
 ]
@@ -60,6 +80,9 @@ PLAN_REJECTED = "plan-rejected"
 
 Check = Callable[[Context, PlanProposal], Awaitable[str | None]]
 Act = Callable[[Context, PlanProposal], Awaitable[None]]
+SafeAction = Callable[[Context, str], Awaitable[None]]
+"""``fn(ctx, reason)``: what the loop does when a trust guard closes (``ctx`` is that of
+the verdict that closed it: ``ctx.publish`` reaches the managed system)."""
 A = TypeVar("A", bound=Act)
 C = TypeVar("C", bound=Check)
 
@@ -117,12 +140,171 @@ class GateStats:
     stale: int = 0
     replayed: int = 0
     superseded: int = 0
+    vetoed: int = 0
+    """Approved plans refused because a trust guard's verdict was false."""
 
     @property
     def refused(self) -> int:
         return (
-            self.unknown_legitimator + self.malformed + self.stale + self.replayed + self.superseded
+            self.unknown_legitimator
+            + self.malformed
+            + self.stale
+            + self.replayed
+            + self.superseded
+            + self.vetoed
         )
+
+
+@dataclass(slots=True)
+class GuardStats:
+    verdicts: int = 0
+    """Trust outputs taken on the guard streams."""
+    unknown_checker: int = 0
+    """Trust outputs from a sender not named in ``checkers`` (ignored)."""
+    not_bool: int = 0
+    """Verdicts whose value is not a Bool (taken as false: fix the guard's spec)."""
+    closed: int = 0
+    """Times the guard closed on a false verdict (a first stream turned false)."""
+    reopened: int = 0
+    safe_actions: int = 0
+    safe_action_failures: int = 0
+
+
+class TrustGuard:
+    """Trust-checker verdicts that veto plans; see the module docstring.
+
+    ``streams``: the guard streams (Bool trust outputs). ``safe_action``: run once each
+    time the guard closes on a false verdict (no stream was false, now one is); None:
+    plans are only refused. ``require_verdicts``: also refuse while some stream has
+    given no verdict yet (or only ⊥), for a loop that must not adapt unchecked; by
+    default a stream without a verdict does not veto. ``checkers``: node ids of the
+    checkers whose outputs count (None: any sender). ``policy``: the inbox of the
+    verdict routes (default :data:`rap_sdk.node.TRUST_POLICY`).
+
+    The guard sees verdicts through :meth:`attach` (``ApprovalGate.on_approved`` attaches
+    it to the execute node), so its state and the gate's checks share the node's one
+    handler at a time. Verdict handlers are not traced (they run outside the cycle)."""
+
+    def __init__(
+        self,
+        *,
+        streams: Collection[str],
+        safe_action: SafeAction | None = None,
+        require_verdicts: bool = False,
+        checkers: Collection[str] | None = None,
+        policy: InboxPolicy | None = None,
+    ) -> None:
+        for stream in streams:
+            keys.trust("x", stream)  # validates the stream name
+        self.streams = frozenset(streams)
+        self.checkers = frozenset(checkers) if checkers is not None else None
+        self.safe_action = safe_action
+        self.require_verdicts = require_verdicts
+        self.policy = policy
+        self.stats = GuardStats()
+        self.latest: dict[str, TrustOutput] = {}
+        """Each stream's latest verdict."""
+        self._false: dict[str, str] = {}
+        """Streams whose latest verdict is false (or not a Bool) -> why."""
+        self._attached: set[str] = set()
+        self._taken: anyio.Event | None = None
+
+    @property
+    def is_open(self) -> bool:
+        return self.veto() is None
+
+    def veto(self) -> str | None:
+        """None while plans may run; else why not (naming the guard stream)."""
+        if self._false:
+            stream = min(self._false)
+            return f"trust guard {stream!r} vetoes: {self._false[stream]}"
+        if self.require_verdicts:
+            missing = sorted(
+                s for s in self.streams if s not in self.latest or self.latest[s].deferred
+            )
+            if missing:
+                return f"trust guard {missing[0]!r} has no verdict yet (require_verdicts)"
+        return None
+
+    async def wait_verdicts(self, count: int, *, timeout: float) -> None:
+        """Wait until ``count`` verdicts have been taken in all (``stats.verdicts``): a
+        node that must not act before the checker has spoken, or a test; raises
+        ``TimeoutError`` after ``timeout`` s."""
+        with anyio.fail_after(timeout):
+            while self.stats.verdicts < count:
+                if self._taken is None:
+                    self._taken = anyio.Event()
+                await self._taken.wait()
+
+    def take(self, stream: str, out: TrustOutput, source: str | None = None) -> bool:
+        """Record ``out``, a verdict on guard stream ``stream`` sent by node ``source``;
+        True when it closed the guard (the safe action is due). Verdicts on other
+        streams, or from a sender not in ``checkers``, are ignored."""
+        st = self.stats
+        if stream not in self.streams:
+            return False
+        if self.checkers is not None and source not in self.checkers:
+            st.unknown_checker += 1
+            if st.unknown_checker == 1 or st.unknown_checker % 1000 == 0:
+                log.warning(
+                    "trust guard: ignored %d verdict(s), the last on %s from %r, which is "
+                    "not a checker (allowed: %s)",
+                    st.unknown_checker,
+                    stream,
+                    source,
+                    sorted(self.checkers),
+                )
+            return False
+        st.verdicts += 1
+        if self._taken is not None:
+            self._taken.set()
+            self._taken = None
+        was_open, was_false = self.veto() is None, bool(self._false)
+        self.latest[stream] = out
+        if out.deferred or out.value is True:
+            self._false.pop(stream, None)  # ⊥ (cannot be computed yet) is no veto either
+        elif out.value is False:
+            self._false[stream] = f"false at tick {out.tick}"
+        else:
+            st.not_bool += 1
+            self._false[stream] = (
+                f"value {out.value!r} at tick {out.tick} is not a Bool (a guard stream "
+                "must be a Bool output of its spec)"
+            )
+        now_open = self.veto() is None
+        if self._false and not was_false:
+            st.closed += 1
+            return True
+        if now_open and not was_open:
+            st.reopened += 1
+            log.info("trust guard open again (%s is true): plans may run", stream)
+        return False
+
+    def attach(self, node: Node) -> None:
+        """Subscribe ``node`` to the guard streams (once per node)."""
+        if node.name in self._attached:
+            return
+        self._attached.add(node.name)
+
+        async def on_verdict(ctx: Context, out: TrustOutput) -> None:
+            # the stream is the key's (what was subscribed), whatever the body says
+            if not self.take(keys.parse(ctx.key).name, out, ctx.envelope.source):
+                return
+            reason = self.veto() or ""
+            log.warning("node %s: %s; plans are refused", ctx.node.name, reason)
+            if self.safe_action is None:
+                return
+            try:
+                await self.safe_action(ctx, reason)
+            except Exception:  # a failing safe action must not stop the node
+                self.stats.safe_action_failures += 1
+                log.exception("node %s: the trust guard's safe action failed", ctx.node.name)
+            else:
+                self.stats.safe_actions += 1
+
+        on_verdict.__qualname__ = "TrustGuard.on_verdict"
+        for stream in sorted(self.streams):
+            node.on_trust(stream, policy=self.policy)(on_verdict)
 
 
 class ApprovalGate:
@@ -134,11 +316,14 @@ class ApprovalGate:
         legitimators: Collection[str] | None = None,
         max_age: float | None = 1.0,
         memory: int = 4096,
+        guard: TrustGuard | None = None,
     ) -> None:
         """``legitimators``: node names whose verdicts count (None: any sender).
         ``max_age``: seconds a plan stays executable after its creation (None: no limit).
         ``memory``: how many executed plan uids are remembered against replay; older
-        ones are still refused as superseded."""
+        ones are still refused as superseded. ``guard``: trust-checker verdicts that
+        veto (:class:`TrustGuard`)."""
+        self.guard = guard
         self.legitimators = frozenset(legitimators) if legitimators is not None else None
         self.max_age_ns = None if max_age is None else round(max_age * 1e9)
         self.memory = memory
@@ -175,6 +360,10 @@ class ApprovalGate:
         if proposal.created <= self._newest:
             st.superseded += 1
             return f"plan {uid.hex()} is older than the newest executed plan"
+        veto = self.guard.veto() if self.guard is not None else None
+        if veto is not None:
+            st.vetoed += 1
+            return f"plan {uid.hex()} refused: {veto}"
         self._executed[uid] = None
         if len(self._executed) > self.memory:
             self._executed.popitem(last=False)
@@ -183,7 +372,10 @@ class ApprovalGate:
         return None
 
     def on_approved(self, node: Node, *, event: str = VERDICT) -> Callable[[A], A]:
-        """Make ``fn(ctx, proposal)`` the node's execution of approved plans."""
+        """Make ``fn(ctx, proposal)`` the node's execution of approved plans (and
+        subscribe ``node`` to the guard's streams, if the gate has a guard)."""
+        if self.guard is not None:
+            self.guard.attach(node)
 
         def register(fn: A) -> A:
             async def gated(ctx: Context, verdict: Verdict) -> None:

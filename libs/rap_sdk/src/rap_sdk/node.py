@@ -8,6 +8,9 @@
     @analyse.on_data("scan")
     async def on_scan(ctx: Context, scan: LaserScan) -> None: ...
 
+    @analyse.on_trust("stage_order_ok")          # a trust checker's output stream
+    async def on_verdict(ctx: Context, out: TrustOutput) -> None: ...
+
 A handler takes the :class:`~rap_sdk.runtime.Context` and, optionally, the message; the
 message's annotation picks the decoder (built once, at declaration). Handlers are plain
 async functions that tests may call directly. A Node is only a declaration; it runs on a
@@ -29,7 +32,7 @@ from .envelope import TypedEnvelope, typed_decoder
 from .errors import ConfigError, HandlerError
 from .inbox import InboxPolicy, Overflow
 
-__all__ = ["DATA_POLICY", "EVENT_POLICY", "Node", "Route"]
+__all__ = ["DATA_POLICY", "EVENT_POLICY", "TRUST_POLICY", "Node", "Route"]
 
 F = TypeVar("F", bound=Callable[..., Awaitable[None]])
 
@@ -37,11 +40,21 @@ DATA_POLICY = InboxPolicy(capacity=8, overflow=Overflow.LATEST)
 """Default for data topics: keep the newest samples."""
 EVENT_POLICY = InboxPolicy(capacity=256, overflow=Overflow.FIFO, block=True)
 """Default for events: in order, local senders wait for room."""
+TRUST_POLICY = InboxPolicy(capacity=64, overflow=Overflow.LATEST)
+"""Default for trust-checker outputs: the newest verdicts matter (a checker never waits
+for a slow node)."""
+
+RouteKind = Literal["data", "event", "trust"]
+_BUILDERS: dict[str, Callable[[str, str], str]] = {
+    "data": keys.data,
+    "event": keys.event,
+    "trust": keys.trust,
+}
 
 
 @dataclass(frozen=True, slots=True)
 class Route:
-    kind: Literal["data", "event"]
+    kind: RouteKind
     name: str
     fn: Callable[..., Awaitable[None]]
     msg_type: type[Message] | None
@@ -53,6 +66,17 @@ class Route:
     @property
     def handler_name(self) -> str:
         return getattr(self.fn, "__qualname__", repr(self.fn))
+
+    def key(self, system: str) -> str:
+        """The key this route handles in ``system``."""
+        return _BUILDERS[self.kind](system, self.name)
+
+    @property
+    def traced(self) -> bool:
+        """Calls are traced as stage records; not for trust outputs (a handler of a
+        checker's verdicts runs outside any MAPLE-K cycle, and its records would feed
+        the checker its own consequences)."""
+        return self.kind != "trust"
 
 
 def _message_type(fn: Callable[..., Any], where: str) -> type[Message] | None:
@@ -114,12 +138,11 @@ class Node:
 
     def _route(
         self,
-        kind: Literal["data", "event"],
+        kind: RouteKind,
         name: str,
         policy: InboxPolicy,
     ) -> Callable[[F], F]:
-        builder = keys.data if kind == "data" else keys.event
-        builder("x", name)  # validates the topic / event name
+        _BUILDERS[kind]("x", name)  # validates the topic / event name / trust stream
 
         def register(fn: F) -> F:
             where = f"node {self.name!r}, {kind} {name!r}"
@@ -136,6 +159,11 @@ class Node:
     def on_event(self, name: str, *, policy: InboxPolicy | None = None) -> Callable[[F], F]:
         """Handle events on ``rap/<system>/event/<name>``."""
         return self._route("event", name, policy or EVENT_POLICY)
+
+    def on_trust(self, stream: str, *, policy: InboxPolicy | None = None) -> Callable[[F], F]:
+        """Handle a trust checker's output ``stream`` (``rap/<system>/trust/<stream>``,
+        messages :class:`rap_schemas.TrustOutput`). These calls are not traced."""
+        return self._route("trust", stream, policy or TRUST_POLICY)
 
     def on_snapshot(self, fn: Callable[[], Any]) -> Callable[[], Any]:
         """``fn()`` returns the node's state (any msgspec-encodable value)."""

@@ -3,7 +3,8 @@
 Each route of a node gets its own subscription with its own bounded inbox and a consumer
 task; a node's handlers run one at a time (a node's state needs no locks). Around every
 handler call the runtime publishes :class:`~rap_schemas.StageTrace` start/end records
-carrying the ``cycle``. A sample that cannot be accepted is counted, logged (rate
+carrying the ``cycle`` (except around handlers of trust-checker outputs, which run
+outside the MAPLE-K cycle). A sample that cannot be accepted is counted, logged (rate
 limited) and published as a :class:`~rap_schemas.Rejection` on ``rap/<system>/log/<node>``;
 it never stops the node.
 """
@@ -257,8 +258,7 @@ class NodeRuntime:
         return self.opener.stats
 
     def route_key(self, route: Route) -> str:
-        build = keys.data if route.kind == "data" else keys.event
-        return build(self.system, route.name)
+        return route.key(self.system)
 
     # -- sending -----------------------------------------------------------------------
 
@@ -406,7 +406,7 @@ class NodeRuntime:
     async def _call(self, route: Route, ctx: Context) -> None:
         clock, env, cycle = self.clock, ctx.envelope, ctx.cycle
         # records nobody subscribes to are not built (decided once per call: pairs stay whole)
-        traced = self.trace and self.fabric.has_subscribers(self._trace_key)
+        traced = self.trace and route.traced and self.fabric.has_subscribers(self._trace_key)
         start = 0
         if traced:
             start = clock.time_ns()

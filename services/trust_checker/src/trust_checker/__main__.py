@@ -8,6 +8,11 @@
 A spec with errors prints every problem (file:line:col, the text, a hint) and exits with
 code 2 without starting. Live modes print each output as a console line
 (``name[tick] = Int(7)``) and run until SIGTERM or SIGINT, then exit 0.
+
+Live modes publish verdicts (a Bool output turned false, a trigger fired; see
+docs/trust_checker.md, "Explanations and triggers") on the fabric and on MQTT
+(``--verdict-topic``). ``--explain`` also writes each verdict to stderr as one JSON line
+(``rap.TrustVerdict``); stdout stays the reference checker's console lines.
 """
 
 from __future__ import annotations
@@ -21,13 +26,16 @@ from pathlib import Path
 from typing import Annotated
 
 import anyio
+import msgspec
 import typer
-from rap_schemas import TrustSpecStatus, keys
+from anyio.abc import TaskStatus
+from rap_schemas import TrustSpecStatus, TrustVerdict, keys
 from rap_schemas.plan import ENDPOINT
 from rap_sdk import FabricError, ZenohConfig, ZenohFabric
 
 from .config import ConfigError, FabricConfig, FabricInput, MqttConfig, TopicMap, decode_map
 from .errors import InputError, SpecError, TrustError
+from .explain import Explainer, to_message
 from .io.fabric import FabricTransport
 from .io.mqtt import MqttTransport
 from .io.ports import OutputLike
@@ -55,20 +63,75 @@ def _write_stdout(text: str) -> None:
     sys.stdout.flush()
 
 
-class ConsoleSink:
-    """Console lines on stdout for every output (the reference checker's format),
-    written from a worker thread (one at a time, in order) so that a slow reader of
-    stdout never blocks the event loop."""
+def _write_stderr(text: str) -> None:
+    sys.stderr.write(text)
+    sys.stderr.flush()
 
-    def __init__(self) -> None:
-        self._limiter = anyio.CapacityLimiter(1)
+
+_encode_json = msgspec.json.Encoder().encode
+
+
+def verdict_lines(verdicts: Sequence[TrustVerdict]) -> str:
+    """``--explain``: one JSON line per verdict (the ``rap.TrustVerdict`` wire form)."""
+    return "".join(_encode_json(v).decode() + "\n" for v in verdicts)
+
+
+class ConsoleSink:
+    """Console lines on stdout for every output (the reference checker's format), and
+    with ``explain`` each verdict as a JSON line on stderr.
+
+    A tick's lines are queued and :meth:`run` writes whatever has queued in one call on a
+    worker thread, so neither a slow reader nor a write per tick holds up the session
+    (and the sinks after this one); only ``MAX_PENDING`` unwritten chunks make a tick
+    wait. What is queued when the checker stops is still written."""
+
+    MAX_PENDING = 10_000
+
+    def __init__(self, *, explain: bool = False) -> None:
+        self.explain = explain
+        self._send, self._receive = anyio.create_memory_object_stream[tuple[bool, str]](
+            self.MAX_PENDING
+        )
 
     async def outputs(self, outs: Sequence[OutputLike]) -> None:
         text = "".join(f"{o.stream}[{o.tick}] = {console(o.value)}\n" for o in outs)
-        await anyio.to_thread.run_sync(_write_stdout, text, limiter=self._limiter)
+        if text:
+            await self._send.send((False, text))
+
+    async def verdicts(self, verdicts: Sequence[TrustVerdict]) -> None:
+        if self.explain and verdicts:
+            await self._send.send((True, verdict_lines(verdicts)))
 
     async def status(self, status: TrustSpecStatus) -> None:
         """Swap outcomes are logged by the session."""
+
+    async def run(self, *, task_status: TaskStatus[None] = anyio.TASK_STATUS_IGNORED) -> None:
+        task_status.started()
+        try:
+            async for first in self._receive:
+                await anyio.to_thread.run_sync(_write_chunks, self._drain(first))
+        finally:
+            with anyio.CancelScope(shield=True):
+                rest = self._drain(None)
+                if rest:
+                    await anyio.to_thread.run_sync(_write_chunks, rest)
+
+    def _drain(self, first: tuple[bool, str] | None) -> list[tuple[bool, str]]:
+        chunks = [] if first is None else [first]
+        while True:
+            try:
+                chunks.append(self._receive.receive_nowait())
+            except (anyio.WouldBlock, anyio.EndOfStream, anyio.ClosedResourceError):
+                return chunks
+
+
+def _write_chunks(chunks: list[tuple[bool, str]]) -> None:
+    out = "".join(text for err, text in chunks if not err)
+    err = "".join(text for is_err, text in chunks if is_err)
+    if out:
+        _write_stdout(out)
+    if err:
+        _write_stderr(err)
 
 
 def _mqtt_address(text: str) -> tuple[str, int]:
@@ -101,6 +164,17 @@ def main(
     ] = False,
     spec_topic: Annotated[str, typer.Option(help="MQTT hot-swap topic.")] = "trust/spec",
     status_topic: Annotated[str, typer.Option(help="MQTT swap-status topic.")] = "trust/status",
+    verdict_topic: Annotated[
+        str, typer.Option(help='MQTT topic of the verdicts (JSON); "" for none.')
+    ] = "trust/verdicts",
+    explain: Annotated[
+        bool,
+        typer.Option(
+            "--explain",
+            help="Also write each verdict (output turned false, trigger fired, and why) "
+            "to stderr as a JSON line.",
+        ),
+    ] = False,
     fabric: Annotated[
         str | None, typer.Option("--fabric", metavar="SYSTEM", help="Run on the RAP fabric.")
     ] = None,
@@ -150,6 +224,7 @@ def main(
                 tagged=tagged,
                 spec_topic=spec_topic,
                 status_topic=status_topic,
+                verdict_topic=verdict_topic,
             )
         fabric_cfg = None
         zconf: ZenohConfig | None = None
@@ -178,12 +253,12 @@ def main(
     if input_file is not None:
         if mqtt_cfg is not None or fabric_cfg is not None:
             raise _fail("--input-file runs alone; drop --mqtt/--fabric", 2)
-        _run_file(parsed, input_file)
+        _run_file(parsed, input_file, explain=explain)
         return
     if mqtt_cfg is None and fabric_cfg is None:
         raise _fail("nothing to run on: give --input-file, --mqtt HOST:PORT or --fabric SYSTEM", 2)
     try:
-        anyio.run(_serve, parsed, policy, mqtt_cfg, fabric_cfg, zconf, node)
+        anyio.run(_serve, parsed, policy, mqtt_cfg, fabric_cfg, zconf, node, explain)
     except FabricError as exc:  # e.g. a listen endpoint that is taken
         raise _fail(str(exc), 1) from None
 
@@ -215,13 +290,31 @@ def _fabric_config(
     return cfg, zconf
 
 
-def _run_file(spec: Spec, trace: Path) -> None:
+def _explain_trace(spec: Spec, ticks: list[dict[str, object]]) -> list[tuple[str, str]]:
+    """``run_trace`` with explanations: per tick, its console lines and its verdicts'
+    JSON lines."""
+    ex = Explainer(Monitor(spec))
+    out: list[tuple[str, str]] = []
+    steps = [ex.step(t) for t in ticks]
+    steps.append(ex.finish())
+    for outs, verdicts in steps:
+        text = "".join(f"{o.stream}[{o.tick}] = {console(o.value)}\n" for o in outs)
+        out.append((text, verdict_lines([to_message(v) for v in verdicts])))
+    return out
+
+
+def _run_file(spec: Spec, trace: Path, *, explain: bool = False) -> None:
     try:
         text = trace.read_text(encoding="utf-8")
     except OSError as exc:
         raise _fail(f"cannot read trace {trace}: {exc.strerror or exc}", 2) from None
     try:
         ticks = read_trace(text, str(trace))
+        if explain:
+            for console_text, verdict_text in _explain_trace(spec, ticks):
+                _write_stdout(console_text)
+                _write_stderr(verdict_text)
+            return
         lines = run_trace(spec, ticks)
     except SpecError as exc:
         for problem in exc.problems:
@@ -242,9 +335,16 @@ async def _serve(
     fabric_cfg: FabricConfig | None,
     zconf: ZenohConfig | None,
     node: str,
+    explain: bool = False,
 ) -> None:
+    console_sink = ConsoleSink(explain=explain)
     session = Session(
-        Monitor(spec), loader=load_text, sinks=[ConsoleSink()], policy=policy, node=node
+        Monitor(spec),
+        loader=load_text,
+        sinks=[console_sink],
+        policy=policy,
+        node=node,
+        explain=True,
     )
     with anyio.open_signal_receiver(signal.SIGTERM, signal.SIGINT) as signals:
         async with contextlib.AsyncExitStack() as stack:
@@ -253,6 +353,7 @@ async def _serve(
                 zfabric = await stack.enter_async_context(ZenohFabric(zconf))
             tg = await stack.enter_async_context(anyio.create_task_group())
             tg.start_soon(_stop_on_signal, signals, tg.cancel_scope)
+            await tg.start(console_sink.run)
             await tg.start(session.run)
             if mqtt_cfg is not None:
                 await tg.start(MqttTransport(session, mqtt_cfg).run)
@@ -266,9 +367,11 @@ async def _serve(
             )
     s = session.stats
     log.info(
-        "stopped after %d ticks: %d outputs, %d rejected, %d input errors, %d eval errors",
+        "stopped after %d ticks: %d outputs, %d verdicts, %d rejected, %d input errors, "
+        "%d eval errors",
         s.ticks,
         s.outputs,
+        s.verdicts,
         s.rejected,
         s.input_errors,
         s.eval_errors,

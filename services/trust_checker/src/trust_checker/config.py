@@ -44,6 +44,9 @@ class MqttConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_onl
     """Hot swap: ``{"spec": "<spec text>"}`` here replaces the running spec."""
     status_topic: str = "trust/status"
     """The outcome of every spec update (``rap.TrustSpecStatus`` as JSON)."""
+    verdict_topic: str = "trust/verdicts"
+    """Verdicts (``rap.TrustVerdict`` as JSON: a Bool output turned false, a trigger
+    fired), when the session explains; "" publishes none."""
     client_id: str = ""
     qos: Annotated[int, msgspec.Meta(ge=0, le=2)] = 0
     timeout: Annotated[float, msgspec.Meta(gt=0)] = 10.0

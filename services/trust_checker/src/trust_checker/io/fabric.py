@@ -4,32 +4,51 @@ Inputs, by default (``FabricConfig.default_inputs``), are a system's trace recor
 events. Each message is one tick (under the ``message`` policy) setting these streams;
 a message that sets none of the running spec's inputs is not a tick:
 
-=====================================  ==================  ============================
-message                                stream              value
-=====================================  ==================  ============================
-``rap.StageTrace`` on                  ``stage``           the stage (Str), when the
-``rap/<system>/trace/<node>``                              node declares one
-                                       ``phase``           ``"start"`` or ``"end"``
-                                       ``node``            the node id (Str)
-                                       ``handler``         the handler's name (Str)
-                                       ``cycle``           the cycle id, hex (Str)
-                                       ``ok``              the handler did not fail (Bool)
-                                       ``<stage>_<phase>``  the cycle id, hex, e.g.
-                                                           ``analyse_start``
-``rap.KnowledgeAccess`` on             ``kb_op``           ``read``, ``write``, ``delete``
-``rap/<system>/trace/<node>``          ``kb_key``          the knowledge key (Str)
-                                       ``kb_node``         the node id (Str)
-                                       ``cycle``           the cycle id, hex, when known
-                                       ``kb_<op>``         the key, e.g. ``kb_write``
-any event on                           ``event``           the event name (Str)
-``rap/<system>/event/<name>``          ``cycle``           the cycle id, hex (the
-                                                           envelope's own uid for a root)
-                                       ``ev_<name>``       the cycle id, hex; ``-`` and
-                                                           ``/`` in the name become ``_``
-                                                           (``ev_new_plan``)
+=====================================  ====================  ==========================
+message                                stream                value
+=====================================  ====================  ==========================
+``rap.StageTrace`` on                  ``stage``             the stage (Str); ``""`` for
+``rap/<system>/trace/<node>``                                a node that declares none
+                                       ``phase``             ``"start"`` or ``"end"``
+                                       ``node``              the node id (Str)
+                                       ``handler``           the handler's name (Str)
+                                       ``cycle``             the cycle id, hex (Str)
+                                       ``ok``                the handler did not fail
+                                                             (Bool)
+                                       ``acted``             an ``end`` record of a
+                                                             handler that published on
+                                                             a data topic (it acted on
+                                                             the managed system); false
+                                                             otherwise (Bool)
+                                       ``<stage>_<phase>``   the cycle id, hex, e.g.
+                                                             ``analyse_start`` (only
+                                                             for a node with a stage)
+``rap.KnowledgeAccess`` on             ``kb_op``             ``read``, ``write``,
+``rap/<system>/trace/<node>``                                ``delete``
+                                       ``kb_key``            the knowledge key (Str)
+                                       ``kb_node``           the node id (Str)
+                                       ``kb_cycle``          the cycle id, hex; ``""``
+                                                             when not known
+                                       ``kb_<op>``           the key, e.g. ``kb_write``
+any event on                           ``event``             the event name (Str)
+``rap/<system>/event/<name>``          ``ev_cycle``          the cycle id, hex (the
+                                                             envelope's own uid for a
+                                                             root)
+                                       ``ev_<name>``         the cycle id, hex; ``-``
+                                                             and ``/`` in the name
+                                                             become ``_``
+                                                             (``ev_new_plan``)
 ... whose body is a ``rap.Verdict``    ``verdict_approved``  Bool
-                                       ``verdict_plan``    the plan uid, hex (Str)
-=====================================  ==================  ============================
+                                       ``verdict_plan``      the plan uid, hex (Str)
+=====================================  ====================  ==========================
+
+Each family sets its own streams (trace records ``cycle``, knowledge records
+``kb_cycle``, events ``ev_cycle``), so a held value never mixes families: a spec that
+reads only one family's common streams (``stage``, ``phase``, ``cycle``, ...; not the
+per-name ones like ``analyse_start``) ticks only on that family's messages, each tick
+setting every one of them. A spec that reads several families tells which stream is
+fresh at a tick with a tick counter (``docs/trust_checker.md``, "MAPLE-K specs and
+veto").
 
 Explicit inputs (``FabricConfig.inputs``): ``stream <- key expression``, the value being
 the message body as plain data (bytes as hex strings), or one ``field`` of it. A sample
@@ -42,7 +61,10 @@ dropped); one that cannot be opened or read is rejected, counted and logged.
 
 Outputs: each output that ticks is published as a ``rap.TrustOutput`` on
 ``rap/<system>/trust/<stream>``, sealed by :class:`rap_sdk.Sealer` (source: the node id),
-so any node can subscribe to it typed.
+so any node can subscribe to it typed. Verdicts (a session with ``explain=True``): each
+``rap.TrustVerdict`` on ``rap/<system>/trust/<stream>/verdict`` (a trigger's stream is
+``trigger.<n>``), sealed the same way; ``rap/<system>/trust/*/verdict`` subscribes to
+them all, ``rap/<system>/trust/*`` to the outputs alone.
 
 Hot swap: a queryable on ``rap/<system>/admin/<node>/swap`` (``node`` defaults to
 ``trust_checker``). The query's payload is a sealed ``rap.TrustSpecUpdate``; the reply a
@@ -66,6 +88,7 @@ from rap_schemas import (
     TrustOutput,
     TrustSpecStatus,
     TrustSpecUpdate,
+    TrustVerdict,
     Verdict,
     keys,
 )
@@ -111,6 +134,12 @@ def _plain(x: Any) -> Any:
     return x
 
 
+def _is_data(key: str) -> bool:
+    """``key`` is a data topic (``rap/<system>/data/...``)."""
+    parts = key.split("/", 3)
+    return len(parts) == 4 and parts[0] == keys.ROOT and parts[2] == keys.Kind.DATA.value
+
+
 def default_values(
     kind: keys.Kind, name: str, env: TypedEnvelope[msgspec.Raw]
 ) -> dict[str, object]:
@@ -122,19 +151,29 @@ def default_values(
         if env.type == StageTrace.TYPE:
             rec = _trace_body(env.body)
             cycle = rec.cycle.hex()
-            out.update(phase=rec.phase, node=rec.node, handler=rec.handler, cycle=cycle, ok=rec.ok)
+            out.update(
+                stage="" if rec.stage is None else str(rec.stage),
+                phase=rec.phase,
+                node=rec.node,
+                handler=rec.handler,
+                cycle=cycle,
+                ok=rec.ok,
+                acted=rec.phase == "end" and any(_is_data(k) for k in rec.sent),
+            )
             if rec.stage is not None:
-                out["stage"] = str(rec.stage)
                 out[f"{rec.stage}_{rec.phase}"] = cycle
         elif env.type == KnowledgeAccess.TYPE:
             acc = _access_body(env.body)
-            out.update(kb_op=acc.op, kb_key=acc.key, kb_node=acc.node)
+            out.update(
+                kb_op=acc.op,
+                kb_key=acc.key,
+                kb_node=acc.node,
+                kb_cycle="" if acc.cycle is None else acc.cycle.hex(),
+            )
             out[f"kb_{acc.op}"] = acc.key
-            if acc.cycle is not None:
-                out["cycle"] = acc.cycle.hex()
     elif kind is keys.Kind.EVENT:
         cycle = (env.cycle if env.cycle is not None else env.uid).hex()
-        out.update(event=name, cycle=cycle)
+        out.update(event=name, ev_cycle=cycle)
         out[event_stream_name(name)] = cycle
         if env.type == Verdict.TYPE:
             verdict = _verdict_body(env.body)
@@ -157,7 +196,10 @@ class FabricStats:
     duplicates: int = 0
     published: int = 0
     dropped: int = 0
-    """Outputs that could not be published (fabric closing, inbox full past the deadline)."""
+    """Outputs (or verdicts) that could not be published (fabric closing, inbox full past
+    the deadline)."""
+    verdicts: int = 0
+    """Verdicts published."""
     swap_queries: int = 0
 
 
@@ -181,6 +223,7 @@ class FabricTransport:
         self._sealer = Sealer(config.node, session.clock)
         self._opener = Opener()
         self._out_keys: dict[str, str] = {}
+        self._verdict_keys: dict[str, str] = {}
         self._routes: dict[str, _Route] = {}
         session.sinks.append(self)
 
@@ -342,6 +385,24 @@ class FabricTransport:
                     log.warning("fabric: output on %s not published: %s", key, exc)
                 continue
             self.stats.published += 1
+
+    async def verdicts(self, verdicts: Sequence[TrustVerdict]) -> None:
+        for verdict in verdicts:
+            key = self._verdict_keys.get(verdict.stream)
+            if key is None:
+                if len(self._verdict_keys) >= 4096:
+                    self._verdict_keys.clear()
+                key = keys.trust(self.system, f"{verdict.stream}/verdict")
+                self._verdict_keys[verdict.stream] = key
+            payload, _ = self._sealer.seal_message(key, verdict)
+            try:
+                await self.fabric.publish(key, payload, timeout=self.config.publish_timeout)
+            except RapError as exc:
+                self.stats.dropped += 1
+                if self.stats.dropped <= 5 or self.stats.dropped % 1000 == 0:
+                    log.warning("fabric: verdict on %s not published: %s", key, exc)
+                continue
+            self.stats.verdicts += 1
 
     async def status(self, status: TrustSpecStatus) -> None:
         """Swap outcomes reach the querier in its reply (and the log)."""

@@ -15,6 +15,12 @@ with the streams' history carried over. The outcome, a ``rap.TrustSpecStatus`` a
 (``{"ok": false, "problems": ["<swap>:2:5: ..."], ...}``), is published on
 ``status_topic`` (default ``trust/status``); a refused spec leaves the old one running.
 
+Verdicts (a session with ``explain=True``): each ``rap.TrustVerdict`` as JSON on
+``verdict_topic`` (default ``trust/verdicts``; "" for none), e.g.
+``{"stream": "ok", "tick": 41, "ts": ..., "value": false, "expr": "latency < 2.0 &&
+approved", "because": [{"expr": "latency < 2.0", "value": false}, {"expr": "latency",
+"value": 2.7, "depth": 1, "input": "latency", "input_tick": 41}]}``.
+
 The connection is re-established after a loss (pauses doubling from 0.1 s up to
 ``reconnect_max``); the monitor and its history live on in the session meanwhile, and
 outputs of ticks that happen while disconnected are dropped and counted.
@@ -30,7 +36,7 @@ import aiomqtt
 import anyio
 import msgspec
 from anyio.abc import TaskStatus
-from rap_schemas import TrustSpecStatus, TrustSpecUpdate
+from rap_schemas import TrustSpecStatus, TrustSpecUpdate, TrustVerdict
 
 from ..config import MqttConfig
 from .codec import CodecError, decode_payload, encode_value
@@ -205,6 +211,12 @@ class MqttTransport:
             await self._publish(
                 self.config.topic_of(out.stream), encode_value(out.value, tagged=tagged)
             )
+
+    async def verdicts(self, verdicts: Sequence[TrustVerdict]) -> None:
+        topic = self.config.verdict_topic
+        if topic:
+            for verdict in verdicts:
+                await self._publish(topic, _encode(verdict))
 
     async def status(self, status: TrustSpecStatus) -> None:
         await self._publish(self.config.status_topic, _encode(status))

@@ -4,11 +4,11 @@ transports can be tested with a small hand-written monitor and a recording sink.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any, Protocol
+from typing import Any, Protocol, runtime_checkable
 
-from rap_schemas import TrustSpecStatus
+from rap_schemas import TrustSpecStatus, TrustVerdict
 
-__all__ = ["Clock", "MonitorLike", "OutputLike", "Sink", "SpecLoader"]
+__all__ = ["Clock", "MonitorLike", "OutputLike", "Sink", "SpecLoader", "VerdictSink"]
 
 
 class OutputLike(Protocol):
@@ -63,3 +63,13 @@ class Sink(Protocol):
 
     async def status(self, status: TrustSpecStatus) -> None:
         """A spec update was taken (``ok``) or refused (``problems``)."""
+
+
+@runtime_checkable
+class VerdictSink(Protocol):
+    """A sink that also takes verdicts (a session with ``explain=True`` gives them to
+    every sink that has this method)."""
+
+    async def verdicts(self, verdicts: Sequence[TrustVerdict]) -> None:
+        """The verdicts of one tick (outputs that turned false, triggers that fired),
+        after that tick's outputs."""

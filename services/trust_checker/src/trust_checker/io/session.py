@@ -11,6 +11,12 @@ Bad input never stops the session: a payload a transport cannot read is
 :meth:`Session.reject`-ed, an input the monitor refuses (``InputError``) or a tick that
 fails (``EvalError``) is counted and logged (rate-limited), and the next message is
 taken. A refused spec update leaves the running spec in place.
+
+With ``explain=True`` (a real :class:`~trust_checker.monitor.Monitor` only) the session
+steps the monitor through an :class:`~trust_checker.explain.Explainer` and gives each
+tick's verdicts (Bool outputs that turned false, triggers that fired, as
+``rap.TrustVerdict``) to every sink that has a ``verdicts`` method
+(:class:`~.ports.VerdictSink`), after that tick's outputs.
 """
 
 from __future__ import annotations
@@ -24,10 +30,12 @@ from typing import Final
 
 import anyio
 from anyio.abc import TaskStatus
-from rap_schemas import TrustSpecStatus
+from rap_schemas import TrustSpecStatus, TrustVerdict
 
 from ..errors import EvalError, InputError, SpecError, TrustError
-from .ports import Clock, MonitorLike, Sink, SpecLoader
+from ..explain import Explainer, to_message
+from ..monitor import Monitor
+from .ports import Clock, MonitorLike, OutputLike, Sink, SpecLoader, VerdictSink
 from .ticks import MESSAGE, Arrival, TickPolicy, merge
 
 __all__ = ["Session", "SessionStats", "SwapRequest", "SystemClock"]
@@ -58,6 +66,8 @@ class SessionStats:
     """Ticks refused by the monitor (a value of the wrong type)."""
     eval_errors: int = 0
     outputs: int = 0
+    verdicts: int = 0
+    """Verdicts given to the sinks (with ``explain``)."""
     swaps: int = 0
     swaps_rejected: int = 0
 
@@ -97,7 +107,8 @@ _Item = Arrival | SwapRequest
 
 class Session:
     """Owns the monitor. ``loader(text, path)`` parses and checks a new spec for hot swap;
-    ``sinks`` get every tick's outputs and every swap's status."""
+    ``sinks`` get every tick's outputs and every swap's status, and with ``explain``
+    its verdicts (see the module docstring)."""
 
     def __init__(
         self,
@@ -109,8 +120,16 @@ class Session:
         clock: Clock | None = None,
         node: str = "trust_checker",
         capacity: int = DEFAULT_CAPACITY,
+        explain: bool = False,
     ) -> None:
         self.monitor = monitor
+        self.explainer: Explainer | None = None
+        if explain:
+            if not isinstance(monitor, Monitor):
+                raise TypeError(
+                    f"explain=True needs a trust_checker Monitor, got {type(monitor).__name__}"
+                )
+            self.explainer = Explainer(monitor)
         self.loader = loader
         self.sinks = list(sinks)
         self.policy = policy
@@ -250,8 +269,15 @@ class Session:
 
     async def _take(self, values: dict[str, object], ts: int, origin: str) -> None:
         self._last_ts = ts
+        verdicts: Sequence[TrustVerdict] = ()
         try:
-            outs = self.monitor.step(values, ts)
+            if self.explainer is not None:
+                outs: Sequence[OutputLike]
+                outs, explained = self.explainer.step(values, ts)
+                if explained:
+                    verdicts = [to_message(v) for v in explained]
+            else:
+                outs = self.monitor.step(values, ts)
         except InputError as exc:
             self.stats.input_errors += 1
             self._rate("input", "input from %s not taken: %s", origin or "?", exc)
@@ -265,18 +291,32 @@ class Session:
             self.stats.outputs += len(outs)
             for sink in self.sinks:
                 await sink.outputs(outs)
+        if verdicts:
+            await self._verdicts(verdicts)
+
+    async def _verdicts(self, verdicts: Sequence[TrustVerdict]) -> None:
+        self.stats.verdicts += len(verdicts)
+        for sink in self.sinks:
+            if isinstance(sink, VerdictSink):
+                await sink.verdicts(verdicts)
 
     async def _swap(self, req: SwapRequest) -> None:
         problems: list[str] = []
         try:
             spec = self.loader(req.text, req.path)
-            new = self.monitor.swap(spec)
+            if self.explainer is not None:
+                explainer = self.explainer.swap(spec)
+                new: MonitorLike = explainer.monitor
+            else:
+                new = self.monitor.swap(spec)
         except SpecError as exc:
             problems = [str(p) for p in exc.problems] or [str(exc)]
         except TrustError as exc:
             problems = [str(exc)]
         else:
             self.monitor = new
+            if self.explainer is not None:
+                self.explainer = explainer
         ok = not problems
         if ok:
             self.stats.swaps += 1
