@@ -7,7 +7,7 @@ PYTEST_ARGS ?=
 DEMO_ARGS ?=
 EVAL_ARGS ?=
 
-.PHONY: help setup sync test lint format typecheck schemas bench bench-fabric bench-knowledge bench-sim bench-loop demo eval clean
+.PHONY: help setup sync test lint format typecheck schemas bench bench-fabric bench-knowledge bench-sim bench-loop bench-trust demo eval clean
 
 help:
 	@echo "make demo       run the lidar-occlusion loop end to end (out/demo/summary.json, demo.rrd)"
@@ -44,7 +44,7 @@ schemas: setup
 
 # Both suites run even if the first misses a budget; make fails if either did.
 bench: setup
-	@rc=0; for b in fabric knowledge sim; do $(RUN) python -m bench.$$b || rc=1; done; exit $$rc
+	@rc=0; for b in fabric knowledge sim trust; do $(RUN) python -m bench.$$b || rc=1; done; exit $$rc
 
 bench-fabric: setup
 	$(RUN) python -m bench.fabric
@@ -54,6 +54,9 @@ bench-knowledge: setup
 
 bench-sim: setup
 	$(RUN) python -m bench.sim
+
+bench-trust: setup
+	$(RUN) python -m bench.trust
 
 # The loop race against RPIO 0.4.3 (its own venv in bench/.rpio-venv; ~10 min)
 bench-loop: setup
