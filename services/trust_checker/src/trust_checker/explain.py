@@ -51,6 +51,7 @@ from trust_checker.errors import EvalError
 from trust_checker.lang import ast
 from trust_checker.lang.check import children
 from trust_checker.lang.lexer import Token, tokenize
+from trust_checker.lang.parser import BINARY
 from trust_checker.monitor import Monitor, Output
 from trust_checker.operators import Fault
 from trust_checker.values import BOTTOM, NOVAL, UNIT, console, to_plain
@@ -244,24 +245,6 @@ class _Source:
         return "".join(parts)
 
 
-_PREC: Final = {
-    "++": 1,
-    "=>": 2,
-    "||": 3,
-    "&&": 4,
-    "==": 5,
-    "<": 6,
-    "<=": 6,
-    ">": 6,
-    ">=": 6,
-    "+": 7,
-    "-": 7,
-    "*": 8,
-    "/": 8,
-    "%": 8,
-}
-
-
 def _lit_text(v: object) -> str:
     if v is True:
         return "true"
@@ -297,8 +280,7 @@ def expr_text(e: ast.Expr, outer: int = 0) -> str:
         case ast.Unary(op=o, operand=x):
             return wrap(f"{o}{expr_text(x, 9)}", 9)
         case ast.Binary(op=o, left=a, right=b):
-            p = _PREC[o]
-            right_assoc = o == "=>"
+            p, right_assoc = BINARY[o]
             left = expr_text(a, p + 1 if right_assoc else p)
             right = expr_text(b, p if right_assoc else p + 1)
             return wrap(f"{left} {o} {right}", p)

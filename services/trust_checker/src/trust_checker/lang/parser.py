@@ -30,10 +30,9 @@ from trust_checker.lang.check import children
 from trust_checker.lang.lexer import DURATION_UNITS, Token, source_line, tokenize
 from trust_checker.values import INT_MAX, INT_MIN, UNIT
 
-__all__ = ["MAX_DEPTH", "MAX_NESTING", "parse_expr", "parse_spec"]
+__all__ = ["BINARY", "MAX_DEPTH", "MAX_NESTING", "parse_expr", "parse_spec"]
 
-# binding power, right-associative?
-_BINARY: Final[dict[str, tuple[int, bool]]] = {
+BINARY: Final[dict[str, tuple[int, bool]]] = {
     "++": (1, False),
     "=>": (2, True),
     "||": (3, False),
@@ -50,6 +49,7 @@ _BINARY: Final[dict[str, tuple[int, bool]]] = {
     "/": (8, False),
     "%": (8, False),
 }
+"""Binary operators: (binding power, right-associative?), loosest first."""
 
 _SIMPLE_TYPES: Final = ("Int", "Float", "Str", "Bool", "Unit", "Any")
 _ALL_TYPES: Final = (*_SIMPLE_TYPES, "List", "Map", "Struct")
@@ -405,7 +405,7 @@ class _Parser:
         left = self.unary()
         while True:
             tok = self.peek()
-            info = _BINARY.get(tok.kind)
+            info = BINARY.get(tok.kind)
             if info is None or info[0] < min_bp:
                 return left
             bp, right_assoc = info
