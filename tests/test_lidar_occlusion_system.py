@@ -3,40 +3,24 @@ over real Zenoh with the runner and the knowledge service in their own processes
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import anyio
-import numpy as np
 import pytest
 from knowledge.app import open_service
 from knowledge.config import KnowledgeConfig
 from lidar_occlusion.demo import default_plan_path, run_demo
 from lidar_occlusion.nodes import build
-from rap_schemas import KnowledgeAccess, LaserScan, keys
+from lidar_occlusion.scans import occluded_scan
+from rap_schemas import KnowledgeAccess, keys
 from rap_sdk import run_nodes
 from rap_sdk.testing import DelayedKnowledgeWrites, Harness
 from sim_world.world import default_world_path, load_world
 
 pytestmark = pytest.mark.anyio
 
-N = 360
-ANGLES = -math.pi + np.arange(N) * (2 * math.pi / N)
 
-
-def scan(start: float | None, width: float = 0.0) -> LaserScan:
-    r = np.full(N, 3.0)
-    if start is not None:
-        r[np.mod(ANGLES - start, 2 * math.pi) < width] = np.inf
-    return LaserScan(
-        stamp=0,
-        frame_id="tb1/base_link",
-        angle_min=-math.pi,
-        angle_increment=2 * math.pi / N,
-        range_min=0.1,
-        range_max=12.0,
-        ranges=r.tolist(),
-    )
+scan = occluded_scan
 
 
 async def test_with_slow_knowledge_writes_no_handler_reads_older_than_promised() -> None:

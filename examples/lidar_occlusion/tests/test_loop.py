@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import contextlib
 import itertools
-import math
 from collections.abc import AsyncIterator
 
 import numpy as np
@@ -13,30 +12,15 @@ from knowledge.app import open_service
 from knowledge.config import KnowledgeConfig
 from lidar_occlusion.nodes import Loop, build
 from lidar_occlusion.planning import LegitimacyConfig
-from rap_schemas import LaserScan, LidarMask, PlanProposal, SpinPlan, Verdict, keys
+from lidar_occlusion.scans import occluded_scan
+from rap_schemas import LidarMask, PlanProposal, SpinPlan, Verdict, keys
 from rap_sdk import Sealer
 from rap_sdk.testing import Harness
 
 pytestmark = pytest.mark.anyio
 
-N = 360
-INC = 2 * math.pi / N
-ANGLES = -math.pi + np.arange(N) * INC
 
-
-def scan(start: float | None = None, width: float = 0.0) -> LaserScan:
-    r = np.full(N, 3.0)
-    if start is not None:
-        r[np.mod(ANGLES - start, 2 * math.pi) < width] = np.inf
-    return LaserScan(
-        stamp=0,
-        frame_id="tb1/base_link",
-        angle_min=-math.pi,
-        angle_increment=INC,
-        range_min=0.1,
-        range_max=12.0,
-        ranges=r.tolist(),
-    )
+scan = occluded_scan
 
 
 @contextlib.asynccontextmanager

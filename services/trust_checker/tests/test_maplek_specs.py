@@ -17,12 +17,12 @@ from typing import Any
 
 import anyio
 import msgspec
-import numpy as np
 import pytest
 from knowledge.app import open_service
 from knowledge.config import KnowledgeConfig
 from lidar_occlusion.nodes import ANOMALY, DIRECTIONS, HANDLING, LASER_SCAN, LIDAR_MASK, build
 from lidar_occlusion.planning import LegitimacyConfig, PlanConfig
+from lidar_occlusion.scans import occluded_scan
 from lidar_occlusion.scenario import run_in_process
 from rap_schemas import (
     LaserScan,
@@ -49,24 +49,9 @@ from trust_checker.specs import MAPLEK_OUTPUTS, maplek_specs
 pytestmark = pytest.mark.anyio
 
 SYS = "lo"
-N = 360
-INC = 2 * math.pi / N
-ANGLES = -math.pi + np.arange(N) * INC
 
 
-def scan(start: float | None = None, width: float = 0.0) -> LaserScan:
-    r = np.full(N, 3.0)
-    if start is not None:
-        r[np.mod(ANGLES - start, 2 * math.pi) < width] = np.inf
-    return LaserScan(
-        stamp=0,
-        frame_id="tb1/base_link",
-        angle_min=-math.pi,
-        angle_increment=INC,
-        range_min=0.1,
-        range_max=12.0,
-        ranges=r.tolist(),
-    )
+scan = occluded_scan
 
 
 # -- the checkers ----------------------------------------------------------------------
