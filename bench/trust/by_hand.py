@@ -16,7 +16,9 @@ from __future__ import annotations
 import random
 from typing import Any
 
+import immutables
 from trust_checker.monitor import Output
+from trust_checker.values import BOTTOM, NOVAL, MapV
 
 STAGES = ("monitor", "analyse", "plan", "legitimate", "execute")
 RANK = {s: i for i, s in enumerate(STAGES)}
@@ -68,6 +70,104 @@ class StageOrderByHand:
             if not known and len(reached) > KEEP:
                 del reached[next(iter(reached))]
         return [Output("stage_order_ok", tick, ok, ts_ns)]
+
+
+class StageOrderAsSpecified:
+    """The stage-order spec as straight-line Python that keeps the language's values:
+    what a generator emitting one Python function per spec could at best produce, short
+    of proving in-place updates safe. Same inputs and outputs as the Monitor (inputs
+    type-checked and held, NoVal until each has a value, ``x[1]`` is ⊥ on the first
+    tick), but no call per operator: each stream is one inline expression. Its map and
+    list are immutable as the spec says: every ``Map.insert`` / ``Map.remove`` builds a
+    new :class:`MapV` and every ``List.append`` / ``List.tail`` a new tuple, where
+    :class:`StageOrderByHand` updates one dict in place. Not part of RAP: the bench's
+    yardstick for what generated source could reach."""
+
+    __slots__ = ("cycle", "order1", "phase", "reached1", "stage", "tick")
+
+    def __init__(self) -> None:
+        self.stage: object = NOVAL
+        self.phase: object = NOVAL
+        self.cycle: object = NOVAL
+        self.reached1: Any = BOTTOM  # reached[1]
+        self.order1: Any = BOTTOM  # order[1]
+        self.tick = 0
+
+    def _empty(self) -> Any:
+        return MapV()
+
+    def step(self, inputs: dict[str, Any], ts_ns: int | None = None) -> list[Output]:
+        tick = self.tick
+        self.tick = tick + 1
+        v = inputs.get("stage", NOVAL)
+        if v is not NOVAL:
+            if type(v) is not str:
+                raise TypeError(f"stage: expected Str, got {v!r}")
+            self.stage = v
+        v = inputs.get("phase", NOVAL)
+        if v is not NOVAL:
+            if type(v) is not str:
+                raise TypeError(f"phase: expected Str, got {v!r}")
+            self.phase = v
+        v = inputs.get("cycle", NOVAL)
+        if v is not NOVAL:
+            if type(v) is not str:
+                raise TypeError(f"cycle: expected Str, got {v!r}")
+            self.cycle = v
+        stage, phase, cycle = self.stage, self.phase, self.cycle
+        if stage is NOVAL or phase is NOVAL or cycle is NOVAL:
+            return []
+        rank = RANK.get(stage, -1)  # type: ignore[call-overload]
+        starting = phase == "start" and rank >= 0
+        r1 = self.reached1
+        reached_before = self._empty() if r1 is BOTTOM else r1
+        known = cycle in reached_before
+        highest = reached_before[cycle] if known else -1
+        ok = not starting or rank == 0 or highest >= rank - 1
+        o1 = self.order1
+        order_before = () if o1 is BOTTOM else o1
+        grown = (*order_before, cycle) if starting and not known else order_before
+        evict = len(grown) > KEEP
+        order = grown[1:] if evict else grown
+        raised = (
+            self._insert(reached_before, cycle, highest if highest > rank else rank)
+            if starting
+            else reached_before
+        )
+        self.reached1 = self._remove(raised, grown[0]) if evict else raised
+        self.order1 = order
+        return [Output("stage_order_ok", tick, ok, ts_ns)]
+
+    @staticmethod
+    def _insert(m: Any, k: str, v: int) -> Any:
+        new = MapV(m)
+        new[k] = v
+        return new
+
+    @staticmethod
+    def _remove(m: Any, k: str) -> Any:
+        new = MapV(m)
+        del new[k]
+        return new
+
+
+class StageOrderPersistent(StageOrderAsSpecified):
+    """:class:`StageOrderAsSpecified` with the map held in a persistent hash trie
+    (``immutables.Map``): still immutable, but an insert or remove shares all but
+    O(log n) of the old map instead of copying it."""
+
+    __slots__ = ()
+
+    def _empty(self) -> Any:
+        return immutables.Map()
+
+    @staticmethod
+    def _insert(m: Any, k: str, v: int) -> Any:
+        return m.set(k, v)
+
+    @staticmethod
+    def _remove(m: Any, k: str) -> Any:
+        return m.delete(k)
 
 
 def stage_trace(cycles: int, seed: int = 7) -> list[dict[str, Any]]:

@@ -31,10 +31,16 @@ def _rows(outs: Sequence[Output]) -> list[tuple[str, int, type, object]]:
     return [(o.stream, o.tick, type(o.value), o.value) for o in outs]
 
 
-def check_same(spec: Path, by_hand: Callable[[], Stepper], trace: Sequence[dict[str, Any]]) -> int:
-    """Both monitors on the whole trace: AssertionError at the first tick they differ.
-    Returns the number of outputs compared."""
-    mon: Stepper = Monitor(load_spec(spec))
+def check_same(
+    spec: Path,
+    by_hand: Callable[[], Stepper],
+    trace: Sequence[dict[str, Any]],
+    contender: Callable[[], Stepper] | None = None,
+) -> int:
+    """Both monitors (``contender``, by default the Monitor on ``spec``, and ``by_hand``)
+    on the whole trace: AssertionError at the first tick they differ. Returns the number
+    of outputs compared."""
+    mon: Stepper = contender() if contender else Monitor(load_spec(spec))
     ref = by_hand()
     n = 0
     for i, rec in enumerate(trace):
@@ -69,16 +75,20 @@ def measure(
     *,
     rounds: int,
     batch: int,
+    contender: Callable[[], Stepper] | None = None,
 ) -> dict[str, Any]:
-    outputs = check_same(spec, by_hand, trace)
+    """``contender`` (default: a fresh Monitor on ``spec``) against ``by_hand``; the
+    contender's figures are under "monitor"."""
+    outputs = check_same(spec, by_hand, trace, contender)
     parsed = load_spec(spec)
+    fresh: Callable[[], Stepper] = contender or (lambda: Monitor(parsed))
     samples: dict[str, list[float]] = {"monitor": [], "by_hand": []}
     ratios: list[float] = []
     for r in range(rounds + 1):
         p50: dict[str, float] = {}
         order = ("monitor", "by_hand") if r % 2 else ("by_hand", "monitor")
         for name in order:
-            obj: Stepper = Monitor(parsed) if name == "monitor" else by_hand()
+            obj: Stepper = fresh() if name == "monitor" else by_hand()
             gc.collect()
             got = _batches(obj, trace, batch)
             p50[name] = pct(got, 0.5)
