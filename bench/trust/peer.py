@@ -24,7 +24,7 @@ from rap_schemas import StageTrace, TrustOutput, keys
 from rap_sdk import InboxPolicy, Opener, Overflow, Sealer, ZenohConfig, ZenohFabric
 from rap_sdk.errors import RejectedSample
 
-_INBOX = InboxPolicy(capacity=4096, overflow=Overflow.FIFO, block=False)
+_INBOX = InboxPolicy(capacity=1 << 16, overflow=Overflow.FIFO, block=False)
 
 
 async def echo(system: str, endpoint: str) -> None:
@@ -74,9 +74,9 @@ async def session(system: str, endpoint: str, spec_path: str) -> None:
 
 def main(argv: list[str]) -> None:
     if len(argv) == 3 and argv[0] == "echo":
-        anyio.run(echo, argv[1], argv[2])
+        anyio.run(echo, argv[1], argv[2], backend_options={"use_uvloop": True})
     elif len(argv) == 4 and argv[0] == "session":
-        anyio.run(session, argv[1], argv[2], argv[3])
+        anyio.run(session, argv[1], argv[2], argv[3], backend_options={"use_uvloop": True})
     else:
         sys.exit(__doc__)
 

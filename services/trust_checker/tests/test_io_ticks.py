@@ -218,3 +218,28 @@ async def test_rejections_are_counted() -> None:
         session.reject("t/a", "not JSON")
         session.reject("t/a", "not JSON")
     assert session.stats.rejected == 2
+
+
+async def test_a_batch_is_one_arrival_each_in_order() -> None:
+    mon = FakeMonitor(FakeSpec(("a",), ("s",)))
+    async with running(mon) as (session, sink):
+        await session.submit_many([Arrival({"a": i}, i, "a") for i in range(1, 5)])
+        await session.submit_many([Arrival({}, 9, "x")])  # sets nothing: not submitted
+        await session.submit(Arrival({"a": 10}, 10, "a"))
+        await session.wait_idle()
+    assert [v["a"] for v, _ in mon.steps] == [1, 2, 3, 4, 10]
+    assert [o.value for o in sink.outs] == [1, 3, 6, 10, 20]
+    assert session.stats.messages == 5
+
+
+async def test_a_window_burst_spans_batches_and_a_swap_follows_the_batch() -> None:
+    mon = FakeMonitor(FakeSpec(("a", "b"), ("s",)))
+    async with running(mon, TickPolicy("window", 300_000_000)) as (session, sink):
+        await session.submit_many([Arrival({"a": 1}, 100, "a"), Arrival({"b": 10}, 200, "b")])
+        await session.submit_many([Arrival({"a": 2}, 300, "a")])
+        status = await session.request_swap("in a b\nout t\n", timeout=2.0)
+        assert status.ok
+        await sink.wait_for(1)
+    # one atomic tick of the whole burst, then the swap (the old spec's output)
+    assert mon.steps == [({"a": 2, "b": 10}, 100)]
+    assert [(o.stream, o.value) for o in sink.outs] == [("s", 12)]

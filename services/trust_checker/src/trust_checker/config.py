@@ -77,6 +77,9 @@ class FabricConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     default_inputs: bool = True
     """Read the system's trace records and events (see :mod:`trust_checker.io.fabric`)."""
     publish_timeout: Annotated[float, msgspec.Meta(gt=0)] = 2.0
+    inbox: Annotated[int, msgspec.Meta(ge=1)] = 1 << 16
+    """Input samples that may wait for the checker; past this many, new ones are dropped,
+    counted (``FabricStats.lost``) and logged as an error."""
 
 
 def decode_map(text: str, value_type: type[T], what: str) -> dict[str, T]:

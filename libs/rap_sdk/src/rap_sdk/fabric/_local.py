@@ -51,6 +51,11 @@ class InboxStream(Generic[T]):
     async def get(self) -> T:
         return await self.inbox.get()
 
+    def get_nowait(self) -> T | None:
+        """The next item if one is queued, else None (never waits): a consumer that
+        takes what has piled up in one go."""
+        return self.inbox.get_nowait()
+
     def close(self) -> None:
         if not self.inbox.closed:
             self.inbox.close()

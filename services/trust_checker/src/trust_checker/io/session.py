@@ -24,6 +24,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Final
@@ -102,7 +103,16 @@ class _RateLog:
 
 _TIMEOUT: Final = object()
 _CLOSED: Final = object()
-_Item = Arrival | SwapRequest
+
+
+@dataclass(frozen=True, slots=True)
+class _Batch:
+    """Arrivals handed over in one go (a transport that fell behind catching up)."""
+
+    arrivals: Sequence[Arrival]
+
+
+_Item = Arrival | SwapRequest | _Batch
 
 
 class Session:
@@ -138,6 +148,11 @@ class Session:
         self.stats = SessionStats()
         self._rate = _RateLog()
         self._send, self._receive = anyio.create_memory_object_stream[_Item](capacity)
+        self._backlog: deque[Arrival] = deque()
+        """The rest of a batch being taken (before anything queued after it)."""
+        self._inputs: tuple[MonitorLike, frozenset[str]] | None = None
+        self._in_flight = 0
+        """Items submitted and not yet taken from the stream."""
         self._last_ts = 0
         self._last_periodic = -1
         self.idle = anyio.Event()
@@ -153,9 +168,26 @@ class Session:
             if not item.values:
                 return
             self.stats.messages += 1
+        await self._queue(item)
+
+    async def submit_many(self, arrivals: Sequence[Arrival]) -> None:
+        """Queue several messages' values in order, as one hand-off: each is still its
+        own arrival (one tick, or part of a window's burst)."""
+        batch = [a for a in arrivals if a.values]
+        if not batch:
+            return
+        self.stats.messages += len(batch)
+        await self._queue(batch[0] if len(batch) == 1 else _Batch(batch))
+
+    async def _queue(self, item: _Item) -> None:
+        self._in_flight += 1  # counted before the send yields: not idle until taken
         if self.idle.is_set():
             self.idle = anyio.Event()
-        await self._send.send(item)
+        try:
+            await self._send.send(item)
+        except BaseException:
+            self._in_flight -= 1
+            raise
 
     async def request_swap(
         self, text: str, *, path: str = "<swap>", origin: str = "", timeout: float = 10.0
@@ -225,19 +257,29 @@ class Session:
             await self._step(item)
 
     async def _next(self, timeout: float | None, *, burst: bool = False) -> object:
+        if self._backlog:
+            return self._backlog.popleft()
         try:
             item = self._receive.receive_nowait()
         except anyio.WouldBlock:
-            if not burst:
+            if not burst and not self._in_flight:
                 self.idle.set()
             with anyio.move_on_after(math.inf if timeout is None else timeout):
                 try:
-                    return await self._receive.receive()
+                    item = await self._receive.receive()
                 except anyio.EndOfStream:
                     return _CLOSED
+                return self._unbatch(item)
             return _TIMEOUT
         except anyio.EndOfStream:
             return _CLOSED
+        return self._unbatch(item)
+
+    def _unbatch(self, item: _Item) -> object:
+        self._in_flight -= 1
+        if isinstance(item, _Batch):
+            self._backlog.extend(item.arrivals)
+            return self._backlog.popleft()
         return item
 
     def _now(self) -> int:
@@ -259,7 +301,10 @@ class Session:
         await self._take({}, max(due, self._last_ts), "periodic tick")
 
     async def _step(self, arrival: Arrival) -> None:
-        inputs = set(self.monitor.inputs)
+        cached = self._inputs
+        if cached is None or cached[0] is not self.monitor:
+            cached = self._inputs = (self.monitor, frozenset(self.monitor.inputs))
+        inputs = cached[1]
         values = {k: v for k, v in arrival.values.items() if k in inputs}
         if not values:
             self.stats.ignored += arrival.count
