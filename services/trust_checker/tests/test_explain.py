@@ -399,21 +399,39 @@ def test_swap_carries_arrival_ticks_and_last_values_over() -> None:
     assert new.step({"approved": True}).verdicts == []  # still false: no new verdict
 
 
-def test_drain_ticks_are_explained_at_the_last_one() -> None:
+def test_each_drain_tick_is_explained_at_its_own_tick() -> None:
     spec = "in x: Bool\nout y: Bool\ny = x[2]\n"
     ex = explainer(spec)
     for t in ({"x": True}, {"x": False}, {"x": False}):
         assert ex.step(t).verdicts == []
     outs, verdicts = ex.finish()
     assert [(o.tick, o.value) for o in outs] == [(3, False), (4, False)]
-    (v,) = verdicts  # y turned false at tick 3 (x from tick 1); not explained there
-    assert (v.tick, v.because, v.truncated) == (3, (), True)
+    (v,) = verdicts  # y turned false at tick 3, the first of two drain ticks
+    assert v.tick == 3
+    assert not v.truncated
+    assert because(v) == [(0, "x[2]", False, "x", 1)]
+    assert ex.finish() == ([], [])  # idempotent
     spec2 = "in x: Bool\nout y: Bool\ny = x[1]\n"
     ex = explainer(spec2)
     ex.step({"x": True})
     ex.step({"x": False})
     (v,) = ex.finish().verdicts  # y = false at tick 2, the last drain tick
     assert because(v) == [(0, "x[1]", False, "x", 1)]
+
+
+def test_a_trigger_firing_at_an_earlier_drain_tick_is_kept_and_explained() -> None:
+    spec = 'in x: Int\ntrigger x[2] > 5 "late"\ntrigger x[1] > 5 "late"\n'
+    ex = explainer(spec)
+    ex.step({"x": 9})
+    ex.step({"x": 1})
+    _, verdicts = ex.finish()  # drain tick 2: x[2] = 9; tick 3: x[2] = 1, x[1] = ⊥
+    assert [(v.stream, v.tick, v.message) for v in verdicts] == [("trigger.0", 2, "late")]
+    assert because(verdicts[0]) == [(0, "x[2]", 9, "x", 0)]
+    mon = Monitor(load_spec(spec))
+    mon.step({"x": 9})
+    mon.step({"x": 1})
+    mon.finish()  # Monitor.fired: every drain tick's firings, not only the last one's
+    assert [(f.tick, f.trigger, f.message) for f in mon.fired] == [(2, 0, "late")]
 
 
 def test_cause_describe_names_missing_input_values() -> None:

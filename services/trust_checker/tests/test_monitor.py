@@ -324,9 +324,9 @@ def test_triggers_fire_while_their_condition_is_true() -> None:
     m.step({"x": 1}, ts_ns=10)
     assert m.fired == []
     m.step({"x": 5}, ts_ns=20)
-    assert m.fired == [Fired("x too high", "error", 1, 20)]
+    assert m.fired == [Fired("x too high", "error", 1, 20, 0)]
     m.step({}, ts_ns=30)  # held x is still 5
-    assert m.fired == [Fired("x too high", "error", 2, 30)]
+    assert m.fired == [Fired("x too high", "error", 2, 30, 0)]
     m.step({"x": 0})
     assert m.fired == []
 

@@ -501,12 +501,14 @@ class Explainer:
         return Explained(outs, self._verdicts(outs, ts_ns, tick))
 
     def finish(self) -> Explained:
-        """The drain ticks of a finite trace (:meth:`Monitor.finish`) and their verdicts."""
-        before = self.monitor.tick
-        outs = self.monitor.finish()
-        if self.monitor.tick == before:  # no drain ticks: Monitor.fired is the last step's
-            return Explained(outs, [])
-        return Explained(outs, self._verdicts(outs, None, self.monitor.tick - 1))
+        """The drain ticks of a finite trace (:meth:`Monitor.drain`) and their verdicts,
+        each explained at its own drain tick."""
+        outs: list[Output] = []
+        verdicts: list[Verdict] = []
+        for tick_outs in self.monitor.drain():
+            outs += tick_outs
+            verdicts += self._verdicts(tick_outs, None, self.monitor.tick - 1)
+        return Explained(outs, verdicts)
 
     def swap(self, spec: ast.Spec) -> Explainer:
         """An explainer over ``monitor.swap(spec)``; input arrival ticks and the outputs'
@@ -580,27 +582,11 @@ class Explainer:
         )
 
     def _fired(self, now: int, ts_ns: int | None) -> list[Verdict]:
-        """Monitor.fired in trigger order, matched to the spec's triggers (by message and
-        severity; a trigger whose condition did not tick now is passed over)."""
+        """Monitor.fired, in trigger order, each as a verdict on ``trigger.<index>``."""
         out: list[Verdict] = []
-        start = 0
         for f in self.monitor.fired:
-            match: tuple[int, ast.Trigger, _Node | None] | None = None
-            for j in range(start, len(self._triggers)):
-                t, node = self._triggers[j]
-                if t.message != f.message or t.severity != f.severity:
-                    continue
-                if match is None:
-                    match = (j, t, node)
-                cur = getattr(node, "cur", None)
-                if not callable(cur) or cur() is True:
-                    match = (j, t, node)
-                    break
-            if match is None:
-                continue
-            j, t, node = match
-            start = j + 1
-            out.append(self._verdict(f"trigger.{j}", f.tick, f.ts_ns, True, node, now, t))
+            t, node = self._triggers[f.trigger]
+            out.append(self._verdict(f"trigger.{f.trigger}", f.tick, f.ts_ns, True, node, now, t))
         return out
 
     def _constant(self, e: ast.Expr) -> bool:

@@ -60,12 +60,14 @@ class Output(NamedTuple):
 
 
 class Fired(NamedTuple):
-    """A trigger whose condition was true at ``tick``."""
+    """A trigger whose condition was true at ``tick``; ``trigger`` is its index in
+    ``spec.triggers`` (two triggers may share a message)."""
 
     message: str
     severity: str
     tick: int
     ts_ns: int | None
+    trigger: int
 
 
 Runner = Callable[[], object]
@@ -134,7 +136,7 @@ class Monitor:
         self._exprs: dict[str, ast.Expr] = {eq.name: eq.expr for eq in spec.equations}
         self._owner: dict[str, str] = {}
         self._hidden_of: dict[int, Stream] = {}
-        self._trigger_streams: list[tuple[Stream, ast.Trigger]] = []
+        self._trigger_streams: list[tuple[Stream, ast.Trigger, int]] = []
         uses_eval = False
         for i, t in enumerate(spec.triggers):
             name = f"<trigger {i}>"
@@ -142,7 +144,7 @@ class Monitor:
             self._streams[name] = s
             self._exprs[name] = t.cond
             self._owner[name] = f'trigger "{t.message}"'
-            self._trigger_streams.append((s, t))
+            self._trigger_streams.append((s, t, i))
         pending = list(self._exprs.items())
         while pending:
             owner, root = pending.pop(0)
@@ -227,7 +229,7 @@ class Monitor:
         """The inputs given at the last tick (their ``cur`` goes back to NoVal)."""
         self._after = bool(self._periodic or self._trigger_streams)
         finite = [s.extra for s in self._outputs if s.extra < INF]
-        finite += [s.extra for s, _ in self._trigger_streams if s.extra < INF]
+        finite += [s.extra for s, _, _ in self._trigger_streams if s.extra < INF]
         self._drain = max(finite, default=0)
 
     def _deps(self, e: ast.Expr, out: set[str], unscoped: list[str], owner: str) -> None:
@@ -630,9 +632,9 @@ class Monitor:
         """Periodic outputs (on a live tick) and the triggers that fired."""
         if self._periodic and ts_ns is not None and live:
             outs = self._periodic_outputs(outs, tick, ts_ns)
-        for ts, trig in self._trigger_streams:
+        for ts, trig, i in self._trigger_streams:
             if ts.cur is True:
-                self.fired.append(Fired(trig.message, trig.severity, tick, ts_ns))
+                self.fired.append(Fired(trig.message, trig.severity, tick, ts_ns, i))
         return outs
 
     def _name(self, s: Stream | None) -> str:
@@ -681,17 +683,29 @@ class Monitor:
 
     def finish(self) -> list[Output]:
         """The drain ticks of a finite trace: inputs have ended; every output runs for
-        ``T + extra`` ticks (docs/trust_checker.md, "Finite traces"). Idempotent."""
-        if self._finished:
-            return []
-        self._finished = True
+        ``T + extra`` ticks (docs/trust_checker.md, "Finite traces"). Afterwards
+        :attr:`fired` holds the triggers that fired at any drain tick. Idempotent."""
         outs: list[Output] = []
+        fired: list[Fired] = []
+        for tick_outs in self.drain():
+            outs += tick_outs
+            fired += self.fired
+        if fired:
+            self.fired = fired
+        return outs
+
+    def drain(self) -> Iterator[list[Output]]:
+        """:meth:`finish` one drain tick at a time: each item is a drain tick's outputs,
+        and while it is current :attr:`fired` and the streams' values are that tick's
+        (what an explanation reads). Yields nothing once finished."""
+        if self._finished:
+            return
+        self._finished = True
         computed = [s for s, _ in self._plan]
         for j in range(self._drain):
             plan = [(s, r) for s, r in self._plan if j < s.extra < INF]
             stopped = [s for s in computed if not j < s.extra < INF]
-            outs += self._drain_tick(None, plan, stopped)
-        return outs
+            yield self._drain_tick(None, plan, stopped)
 
     def swap(self, new_spec: ast.Spec) -> Monitor:
         """A monitor for ``new_spec`` continuing this one: same tick count; streams with
