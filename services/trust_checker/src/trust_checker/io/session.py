@@ -262,7 +262,7 @@ class Session:
         try:
             item = self._receive.receive_nowait()
         except anyio.WouldBlock:
-            if not burst and not self._in_flight:
+            if not burst and self._in_flight <= 0:  # (< 0 after a send cancelled late)
                 self.idle.set()
             with anyio.move_on_after(math.inf if timeout is None else timeout):
                 try:
