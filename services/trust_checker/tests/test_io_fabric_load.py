@@ -11,6 +11,7 @@ import pytest
 from rap_schemas import Stage, StageTrace, keys
 from rap_sdk import Sealer
 from rap_sdk.fabric.memory import MemoryBus, MemoryFabric
+from rap_sdk.inbox import InboxStats
 from trust_checker.config import FabricConfig
 from trust_checker.io import fabric as fabric_io
 from trust_checker.io.fabric import FabricTransport
@@ -88,5 +89,27 @@ async def test_samples_dropped_by_a_full_inbox_are_counted_and_logged(
     assert [v["cycle"] for v, _ in mon.steps] == [i.to_bytes(16, "big").hex() for i in range(16)]
     assert transport.stats.lost == 24
     (msg,) = [r.getMessage() for r in caplog.records]
-    assert "24 samples on rap/load/** lost" in msg
+    assert "24 input samples lost (24 in all; last on rap/load/**)" in msg
     assert "verdicts from here on judge a trace with records missing" in msg
+
+
+async def test_losses_are_logged_at_most_once_a_second_and_all_counted(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    class Sub:
+        key_expr = "rap/load/**"
+        stats = InboxStats()
+
+    session = Session(FakeMonitor(FakeSpec(("a",), ("s",))), loader=fake_loader)
+    async with MemoryFabric() as fab, anyio.create_task_group() as tg:
+        await tg.start(session.run)
+        transport = FabricTransport(session, fab, FabricConfig(system=SYS))
+        sub = Sub()
+        with caplog.at_level(logging.ERROR, logger="trust_checker.io.fabric"):
+            for dropped in (3, 3, 10, 12):
+                sub.stats.dropped = dropped
+                transport._gaps(sub)  # type: ignore[arg-type]
+        session.close()
+    assert transport.stats.lost == 12
+    (msg,) = [r.getMessage() for r in caplog.records]  # the later ones within the second
+    assert msg.startswith("fabric: 3 input samples lost (3 in all")

@@ -75,6 +75,8 @@ running then). A malformed request gets an error reply saying why.
 from __future__ import annotations
 
 import logging
+import math
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Final
@@ -229,6 +231,8 @@ class FabricTransport:
         self._verdict_keys: dict[str, str] = {}
         self._routes: dict[str, _Route] = {}
         self._dropped_seen: dict[str, int] = {}
+        self._lost_logged = (-math.inf, 0)
+        """When the last loss was logged, and stats.lost then."""
         session.sinks.append(self)
 
     @property
@@ -314,20 +318,28 @@ class FabricTransport:
                 await self.session.submit_many(arrivals)
 
     def _gaps(self, sub: Subscription) -> None:
+        """Count what ``sub``'s inbox dropped since the last look; log it as an error at
+        most once a second (the count since the previous line)."""
         dropped = sub.stats.dropped
         seen = self._dropped_seen.get(sub.key_expr, 0)
-        if dropped > seen:
-            self._dropped_seen[sub.key_expr] = dropped
-            self.stats.lost += dropped - seen
-            log.error(
-                "fabric: %d samples on %s lost (%d in all): the checker fell more than %d "
-                "samples behind its inputs, so verdicts from here on judge a trace with "
-                "records missing; give it a faster machine or fewer inputs",
-                dropped - seen,
-                sub.key_expr,
-                self.stats.lost,
-                self.config.inbox,
-            )
+        if dropped <= seen:
+            return
+        self._dropped_seen[sub.key_expr] = dropped
+        self.stats.lost += dropped - seen
+        now = time.monotonic()
+        if now - self._lost_logged[0] < 1.0:
+            return
+        since = self.stats.lost - self._lost_logged[1]
+        self._lost_logged = (now, self.stats.lost)
+        log.error(
+            "fabric: %d input samples lost (%d in all; last on %s): the checker fell more "
+            "than %d samples behind its inputs, so verdicts from here on judge a trace "
+            "with records missing; give it a faster machine or fewer inputs",
+            since,
+            self.stats.lost,
+            sub.key_expr,
+            self.config.inbox,
+        )
 
     def _arrival(self, sample: Sample) -> Arrival | None:
         key = sample.key
