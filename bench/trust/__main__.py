@@ -334,9 +334,9 @@ def _e2e_notes(rows: list[dict[str, Any]]) -> list[str]:
     return [
         f"At {rates} records/s the deployed checker falls behind (its queue grows for "
         "the whole round) while the same session without the console sink keeps up: "
-        "the CLI's console sink writes each tick's lines through a worker thread and "
-        "the session awaits it before the fabric sink publishes, so every tick costs a "
-        "thread round trip.",
+        "what the console output costs (formatting each tick's lines, and the writes to "
+        "stdout on a worker thread) is more than the checker's share of the machine "
+        "leaves at that rate.",
         "",
     ]
 

@@ -1,9 +1,10 @@
 """A running checker: one monitor fed by transports, its outputs given to sinks.
 
 Transports (MQTT, the fabric) turn messages into :class:`~.ticks.Arrival` values and
-spec updates into :class:`SwapRequest` and hand both to :meth:`Session.submit`, in
-arrival order, through one bounded stream; :meth:`Session.run` is the only task that
-touches the monitor. It applies the tick policy, drives periodic outputs (it waits,
+spec updates into :class:`SwapRequest` and hand both to :meth:`Session.submit` (or
+several arrivals at once to :meth:`Session.submit_many`, one hand-off for a transport
+catching up), in arrival order, through one bounded stream; :meth:`Session.run` is the
+only task that touches the monitor. It applies the tick policy, drives periodic outputs (it waits,
 with a deadline, until the monitor's ``next_due``, then steps with no inputs) and swaps
 specs between ticks, so a swap never splits a tick.
 
