@@ -19,7 +19,7 @@ from rap_schemas import KbPut, KbRecord, KbReply, keys
 from rap_sdk import MemoryBus, MemoryFabric
 from rap_sdk.knowledge import EPOCH_MS, HybridClock, KnowledgeClient, KnowledgeError
 
-from .deployment import deployment
+from services.knowledge.tests.deployment import deployment
 
 pytestmark = pytest.mark.anyio
 

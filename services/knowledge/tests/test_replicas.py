@@ -16,7 +16,7 @@ from rap_sdk import MemoryBus, MemoryFabric
 from rap_sdk.envelope import Sealer
 from rap_sdk.knowledge import KnowledgeClient
 
-from .deployment import deployment
+from services.knowledge.tests.deployment import deployment
 
 pytestmark = pytest.mark.anyio
 

@@ -13,7 +13,7 @@ from knowledge.config import KnowledgeConfig
 from rap_schemas import KbReply, LidarMask, SpinCommand, SpinPlan, keys
 from rap_sdk.knowledge import KnowledgeError, KnowledgeTypeError
 
-from .deployment import deployment
+from services.knowledge.tests.deployment import deployment
 
 pytestmark = pytest.mark.anyio
 KINDS = ["memory", pytest.param("zenoh", marks=pytest.mark.zenoh)]

@@ -18,7 +18,7 @@ from knowledge.core import Retention, sha256
 from knowledge.errors import Conflict
 from rap_schemas import KbRecord, ModelMeta
 
-from .servers import redis_server
+from services.knowledge.tests.servers import redis_server
 
 pytestmark = pytest.mark.anyio
 

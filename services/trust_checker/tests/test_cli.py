@@ -16,7 +16,7 @@ from anyio.streams.text import TextReceiveStream
 from trust_checker.lang import load_spec
 from trust_checker.tracefile import read_trace, run_trace
 
-from services.trust_checker.tests.test_io_support import mosquitto
+from services.trust_checker.tests.io_support import mosquitto
 
 SPEC = """\
 in x: Int

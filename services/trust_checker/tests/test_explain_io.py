@@ -27,7 +27,7 @@ from trust_checker.io.specs import load_text
 from trust_checker.monitor import Monitor
 from trust_checker.tracefile import read_trace, run_trace
 
-from services.trust_checker.tests.test_io_support import (
+from services.trust_checker.tests.io_support import (
     FakeMonitor,
     FakeSpec,
     RecordingSink,

@@ -29,7 +29,7 @@ from trust_checker.config import FabricConfig, FabricInput
 from trust_checker.io.fabric import FabricTransport, event_stream_name
 from trust_checker.io.session import Session
 
-from services.trust_checker.tests.test_io_support import (
+from services.trust_checker.tests.io_support import (
     FakeMonitor,
     FakeSpec,
     RecordingSink,

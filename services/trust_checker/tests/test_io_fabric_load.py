@@ -17,7 +17,7 @@ from trust_checker.io import fabric as fabric_io
 from trust_checker.io.fabric import FabricTransport
 from trust_checker.io.session import Session
 
-from services.trust_checker.tests.test_io_support import FakeMonitor, FakeSpec, fake_loader
+from services.trust_checker.tests.io_support import FakeMonitor, FakeSpec, fake_loader
 
 pytestmark = pytest.mark.anyio
 

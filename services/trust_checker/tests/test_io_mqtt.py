@@ -17,7 +17,7 @@ from trust_checker.io.mqtt import MqttTransport
 from trust_checker.io.session import Session
 from trust_checker.io.ticks import MESSAGE, TickPolicy
 
-from services.trust_checker.tests.test_io_support import (
+from services.trust_checker.tests.io_support import (
     FakeMonitor,
     FakeSpec,
     fake_loader,

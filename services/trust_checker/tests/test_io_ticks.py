@@ -18,7 +18,7 @@ from trust_checker.io.ticks import (
 )
 from trust_checker.values import BOTTOM
 
-from services.trust_checker.tests.test_io_support import (
+from services.trust_checker.tests.io_support import (
     FakeMonitor,
     FakeSpec,
     RecordingSink,
