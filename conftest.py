@@ -50,11 +50,11 @@ def pytest_collection_modifyitems(
                 f"{loaded}: two test modules share a name; remove the __init__.py that "
                 "makes them packages of the same name, or rename one"
             )
-    for path in sorted(_test_files(config) - collected):
-        problems.append(
-            f"{path.relative_to(config.rootpath)} was not collected (it has no tests, or "
-            "they are all deselected by a collection hook); fix it or remove it"
-        )
+    problems.extend(
+        f"{path.relative_to(config.rootpath)} was not collected (it has no tests, or "
+        "they are all deselected by a collection hook); fix it or remove it"
+        for path in sorted(_test_files(config) - collected)
+    )
     if problems:
         unique = sorted(set(problems))
         raise pytest.UsageError("test collection guard:\n  " + "\n  ".join(unique))
