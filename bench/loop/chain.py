@@ -63,12 +63,12 @@ async def make_plan(ctx: Context) -> None:
 
 
 @legitimate(legitimator)
-async def check(ctx: Context, proposal: PlanProposal) -> str | None:
+async def check(ctx: Context, proposal: PlanProposal[SpinPlan]) -> str | None:
     return check_plan(proposal, ctx.clock.time_ns(), LEGIT)
 
 
 @gate.on_approved(executor)
-async def act(ctx: Context, proposal: PlanProposal) -> None:
+async def act(ctx: Context, proposal: PlanProposal[SpinPlan]) -> None:
     await ctx.publish(f"{ROBOT}/spin_config", proposal.plan)
 
 
@@ -94,7 +94,11 @@ def handlers(now_ns: Callable[[], int]) -> Callable[[LaserScan], SpinPlan | None
         kb["directions"] = PLAN
         uid[0] += 1
         proposal = PlanProposal(
-            plan_uid=uid[0].to_bytes(16, "big"), plan=PLAN, proposer="planner", created=now_ns()
+            plan_uid=uid[0].to_bytes(16, "big"),
+            plan_type=PLAN.TYPE,
+            plan=PLAN,
+            proposer="planner",
+            created=now_ns(),
         )
         reason = check_plan(proposal, now_ns(), LEGIT)  # legitimate
         verdict = Verdict(

@@ -173,8 +173,10 @@ def test_plan_from_a_mask_at_1_rad_per_s() -> None:
     assert plan_for(np.zeros(N, dtype=bool), -math.pi, INC, PlanConfig()).commands == []
 
 
-def proposal(plan: SpinPlan, created: int = 0) -> PlanProposal:
-    return PlanProposal(plan_uid=b"u" * 16, plan=plan, proposer="p", created=created)
+def proposal(plan: SpinPlan, created: int = 0) -> PlanProposal[SpinPlan]:
+    return PlanProposal(
+        plan_uid=b"u" * 16, plan_type=plan.TYPE, plan=plan, proposer="p", created=created
+    )
 
 
 def test_check_plan() -> None:

@@ -92,7 +92,7 @@ async def test_replayed_stale_and_forged_approvals_are_refused() -> None:
         await h.publish("tb1/scan", scan(-0.4, 0.8))
         await h.expect_data("tb1/spin_config")
         approval = next(
-            r.decode(Verdict)
+            r.decode(Verdict[SpinPlan])  # type: ignore[arg-type]
             for r in h.of(keys.Kind.EVENT, "verdict")
             if r.decode(Verdict).approved
         )
@@ -106,8 +106,9 @@ async def test_replayed_stale_and_forged_approvals_are_refused() -> None:
         await h.wait_for(lambda r: loop.gate.stats.replayed == 1)
         assert not h.of(keys.Kind.EVENT, "plan-rejected")
         # 2. an approval of a plan made long ago: stale
+        plan = approval.proposal.plan
         old = PlanProposal(
-            plan_uid=b"o" * 16, plan=approval.proposal.plan, proposer="planner", created=1
+            plan_uid=b"o" * 16, plan_type=plan.TYPE, plan=plan, proposer="planner", created=1
         )
         stale = Verdict(
             plan_uid=old.plan_uid, approved=True, legitimator="legitimate", ts=2, proposal=old
@@ -119,7 +120,7 @@ async def test_replayed_stale_and_forged_approvals_are_refused() -> None:
         assert "stale" in h.of(keys.Kind.EVENT, "plan-rejected")[-1].decode(Verdict).reason
         # 3. an approval from a node that is not the legitimator: forged
         fresh = PlanProposal(
-            plan_uid=b"f" * 16, plan=approval.proposal.plan, proposer="x", created=2**62
+            plan_uid=b"f" * 16, plan_type=plan.TYPE, plan=plan, proposer="x", created=2**62
         )
         forged = Verdict(
             plan_uid=fresh.plan_uid, approved=True, legitimator="legitimate", ts=2, proposal=fresh

@@ -99,7 +99,8 @@ async def test_the_tracker_follows_a_real_loop_on_the_fabric() -> None:
 
 
 def proposal(uid: bytes, created: int) -> PlanProposal:
-    return PlanProposal(plan_uid=uid, plan=SpinPlan(commands=[]), proposer="p", created=created)
+    plan = SpinPlan(commands=[])
+    return PlanProposal(plan_uid=uid, plan_type=plan.TYPE, plan=plan, proposer="p", created=created)
 
 
 def approve(p: PlanProposal, approved: bool = True) -> Verdict:

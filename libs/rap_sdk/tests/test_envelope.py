@@ -137,4 +137,4 @@ def test_a_message_sealed_in_one_pass_is_an_envelope_on_the_wire() -> None:
     assert msgspec.msgpack.decode(env.body, type=SpinPlan) == plan
     empty, _ = Sealer("x").seal_message("rap/s/event/e", None)
     back = msgspec.msgpack.decode(empty, type=Envelope)
-    assert (back.type, msgspec.msgpack.decode(back.body)) == ("rap.Empty/1", None)
+    assert (back.type, msgspec.msgpack.decode(back.body)) == ("rap.Empty/1", {})

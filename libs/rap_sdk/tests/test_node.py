@@ -221,7 +221,7 @@ async def test_duplicates_reach_the_handler_once() -> None:
 
     async with Harness(system="t") as h:
         group = await h.start(node)
-        payload, _ = h.sealer.seal(keys.event("t", "e"), "rap.Empty/1", b"\xc0")
+        payload, _ = h.sealer.seal(keys.event("t", "e"), "rap.Empty/1", b"\x80")
         for _ in range(3):
             await h.publish_raw(keys.event("t", "e"), payload)
         await h.emit("e")

@@ -52,6 +52,10 @@ SDK = {
 SCHEMAS = {
     "MESSAGES",
     "MODELS_PREFIX",
+    "NEW_PLAN",
+    "PLAN_REJECTED",
+    "VERDICT",
+    "limits",
     "KbDelete",
     "KbGet",
     "KbHistory",

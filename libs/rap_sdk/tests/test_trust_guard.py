@@ -108,7 +108,7 @@ class Loop:
         self.executed: list[bytes] = []
 
         @self.gate.on_approved(self.execute)
-        async def act(ctx: Context, proposal: PlanProposal) -> None:
+        async def act(ctx: Context, proposal: PlanProposal[SpinPlan]) -> None:
             self.executed.append(proposal.plan_uid)
             await ctx.publish("spin_config", proposal.plan)
 
@@ -145,7 +145,9 @@ class Feed:
         self.n += 1
         now = time.time_ns()
         uid = self.n.to_bytes(16, "big")
-        proposal = PlanProposal(plan_uid=uid, plan=PLAN, proposer="planner", created=now)
+        proposal = PlanProposal(
+            plan_uid=uid, plan_type=PLAN.TYPE, plan=PLAN, proposer="planner", created=now
+        )
         v = Verdict(
             plan_uid=uid, approved=True, legitimator="legitimate", ts=now, proposal=proposal
         )

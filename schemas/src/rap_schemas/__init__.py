@@ -1,7 +1,7 @@
 """rap_schemas: every wire message, the envelope, the key space and the deployment plan
 of RAP (YAML files with positioned errors: :mod:`rap_schemas.yamlconf`)."""
 
-from . import keys
+from . import keys, limits
 from .catalog import MESSAGES, by_type
 from .envelope import Envelope
 from .knowledge import (
@@ -21,19 +21,27 @@ from .knowledge import (
     ModelPut,
 )
 from .lidar import (
-    Empty,
     LaserScan,
     LidarMask,
     Odometry,
-    PlanProposal,
     Pose2D,
     SimTime,
     SpinCommand,
     SpinPlan,
     Twist,
+)
+from .maplek import (
+    NEW_PLAN,
+    PLAN_REJECTED,
+    VERDICT,
+    Empty,
+    KnowledgeAccess,
+    PlanProposal,
+    Rejection,
+    Stage,
+    StageTrace,
     Verdict,
 )
-from .maplek import KnowledgeAccess, Rejection, Stage, StageTrace
 from .message import Message
 from .plan import (
     ComponentSpec,
@@ -50,6 +58,9 @@ from .trust import TrustCause, TrustOutput, TrustSpecStatus, TrustSpecUpdate, Tr
 __all__ = [
     "MESSAGES",
     "MODELS_PREFIX",
+    "NEW_PLAN",
+    "PLAN_REJECTED",
+    "VERDICT",
     "ComponentSpec",
     "ComputeNode",
     "DeploymentPlan",
@@ -93,6 +104,7 @@ __all__ = [
     "Verdict",
     "by_type",
     "keys",
+    "limits",
     "load_plan",
     "parse_plan",
 ]

@@ -5,20 +5,8 @@ from __future__ import annotations
 from typing import Final
 
 from .knowledge import KbRecord
-from .lidar import (
-    Empty,
-    LaserScan,
-    LidarMask,
-    Odometry,
-    PlanProposal,
-    Pose2D,
-    SimTime,
-    SpinCommand,
-    SpinPlan,
-    Twist,
-    Verdict,
-)
-from .maplek import KnowledgeAccess, Rejection, StageTrace
+from .lidar import LaserScan, LidarMask, Odometry, Pose2D, SimTime, SpinCommand, SpinPlan, Twist
+from .maplek import Empty, KnowledgeAccess, PlanProposal, Rejection, StageTrace, Verdict
 from .message import Message
 from .trust import TrustOutput, TrustSpecStatus, TrustSpecUpdate, TrustVerdict
 

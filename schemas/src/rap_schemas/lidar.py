@@ -6,50 +6,66 @@ the lidar mount offset, if any, is applied by the publisher and named in ``frame
 
 from __future__ import annotations
 
+import math
+from typing import Annotated
+
+import msgspec
+
 from .message import Message
 
 __all__ = [
-    "Empty",
     "LaserScan",
     "LidarMask",
     "Odometry",
-    "PlanProposal",
     "Pose2D",
     "SimTime",
     "SpinCommand",
     "SpinPlan",
     "Twist",
-    "Verdict",
 ]
 
-
-class Empty(Message, frozen=True):
-    """A body-less event."""
-
-    TYPE = "rap.Empty/1"
+# Bounds that also make a number finite: msgspec refuses NaN and values past them.
+Angle = Annotated[float, msgspec.Meta(ge=-4 * math.pi, le=4 * math.pi, description="radians")]
+Increment = Annotated[float, msgspec.Meta(gt=0, le=2 * math.pi, description="radians")]
+Metres = Annotated[float, msgspec.Meta(ge=0, le=1e6, description="metres")]
+Coordinate = Annotated[float, msgspec.Meta(ge=-1e9, le=1e9, description="metres")]
+Speed = Annotated[float, msgspec.Meta(ge=-1e3, le=1e3)]
+Seconds = Annotated[float, msgspec.Meta(ge=0, le=86_400, description="seconds")]
+Nanos = Annotated[int, msgspec.Meta(ge=0, description="integer nanoseconds")]
+Range = Annotated[float, msgspec.Meta(ge=0, description="metres; inf: no return")]
+Beams = 100_000
+"""The most beams a scan or mask may have."""
 
 
 class LaserScan(Message, frozen=True):
     TYPE = "rap.LaserScan/1"
 
-    stamp: int
-    """Sensor time of the first beam, integer nanoseconds."""
+    stamp: Nanos
+    """Sensor time of the first beam."""
     frame_id: str
-    angle_min: float
-    angle_increment: float
-    range_min: float
-    range_max: float
-    ranges: list[float]
-    """Metres; ``inf`` where a beam has no return (occluded or beyond range)."""
-    scan_time: float = 0.2
+    angle_min: Angle
+    angle_increment: Increment
+    range_min: Metres
+    range_max: Metres
+    ranges: Annotated[list[Range], msgspec.Meta(max_length=Beams)]
+    """Metres; ``inf`` where a beam has no return (occluded or beyond range); never
+    NaN nor negative."""
+    scan_time: Seconds = 0.2
+
+    def __post_init__(self) -> None:
+        if self.range_min > self.range_max:
+            raise ValueError(
+                f"range_min {self.range_min} is above range_max {self.range_max}; a scan's "
+                "valid ranges are range_min..range_max"
+            )
 
 
 class Pose2D(Message, frozen=True):
     TYPE = "rap.Pose2D/1"
 
-    x: float
-    y: float
-    theta: float
+    x: Coordinate
+    y: Coordinate
+    theta: Angle
 
 
 class Twist(Message, frozen=True):
@@ -57,14 +73,16 @@ class Twist(Message, frozen=True):
 
     TYPE = "rap.Twist/1"
 
-    linear: float
-    angular: float
+    linear: Speed
+    """m/s."""
+    angular: Speed
+    """rad/s."""
 
 
 class Odometry(Message, frozen=True):
     TYPE = "rap.Odometry/1"
 
-    stamp: int
+    stamp: Nanos
     frame_id: str
     pose: Pose2D
     twist: Twist
@@ -75,8 +93,8 @@ class SimTime(Message, frozen=True):
 
     TYPE = "rap.SimTime/1"
 
-    t: int
-    realtime_factor: float = 0.0
+    t: Nanos
+    realtime_factor: Annotated[float, msgspec.Meta(ge=0, le=1e6)] = 0.0
     """0 in lockstep (as fast as possible), else sim seconds per wall second."""
 
 
@@ -85,8 +103,9 @@ class SpinCommand(Message, frozen=True):
 
     TYPE = "rap.SpinCommand/1"
 
-    omega: float
-    duration: float
+    omega: Speed
+    """rad/s (the Legitimate stage decides what is safe; this only keeps it finite)."""
+    duration: Seconds
 
 
 class SpinPlan(Message, frozen=True):
@@ -95,8 +114,8 @@ class SpinPlan(Message, frozen=True):
 
     TYPE = "rap.SpinPlan/1"
 
-    commands: list[SpinCommand]
-    period: float = 8.0
+    commands: Annotated[list[SpinCommand], msgspec.Meta(max_length=1000)]
+    period: Annotated[float, msgspec.Meta(gt=0, le=86_400)] = 8.0
 
 
 class LidarMask(Message, frozen=True):
@@ -104,35 +123,7 @@ class LidarMask(Message, frozen=True):
 
     TYPE = "rap.LidarMask/1"
 
-    angle_min: float
-    angle_increment: float
-    occluded: list[bool]
+    angle_min: Angle
+    angle_increment: Increment
+    occluded: Annotated[list[bool], msgspec.Meta(max_length=Beams)]
     frame_id: str = "base_link"
-
-
-class PlanProposal(Message, frozen=True):
-    """A plan put to the Legitimate stage."""
-
-    TYPE = "rap.PlanProposal/1"
-
-    plan_uid: bytes
-    plan: SpinPlan
-    proposer: str
-    created: int
-    """UTC ns when the plan was made; legitimation rejects stale plans."""
-
-
-class Verdict(Message, frozen=True, omit_defaults=True):
-    """The Legitimate stage's decision on one plan.
-
-    An approving verdict carries the proposal it approves: the execute side acts on
-    exactly that plan, never on whatever a knowledge key holds by then."""
-
-    TYPE = "rap.Verdict/1"
-
-    plan_uid: bytes
-    approved: bool
-    legitimator: str
-    ts: int
-    reason: str = ""
-    proposal: PlanProposal | None = None

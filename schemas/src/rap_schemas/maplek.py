@@ -1,15 +1,84 @@
-"""MAPLE-K vocabulary and the records the SDK publishes about stages and knowledge."""
+"""MAPLE-K vocabulary: stages, the plan/verdict messages of the Legitimate gate, and the
+records the SDK publishes about stages and knowledge.
+
+The gate's messages are generic over the plan: an application declares its own plan
+message (a spin plan, a route to the dock, a model version to deploy) and proposes it in
+a ``PlanProposal[ItsPlan]``; ``plan_type`` names the plan's wire type so that a stage
+that judges one kind of plan refuses another with a clear reason. Decoded without a type
+parameter (a recorder, the trust checker), ``plan`` is plain data.
+"""
 
 from __future__ import annotations
 
 import enum
-from typing import Literal
+from typing import Annotated, Final, Generic, Literal, TypeVar
 
 import msgspec
 
 from .message import Message
 
-__all__ = ["KnowledgeAccess", "Rejection", "Stage", "StageTrace"]
+__all__ = [
+    "NEW_PLAN",
+    "PLAN_REJECTED",
+    "VERDICT",
+    "Empty",
+    "KnowledgeAccess",
+    "PlanProposal",
+    "Rejection",
+    "Stage",
+    "StageTrace",
+    "Verdict",
+]
+
+P = TypeVar("P")
+
+NEW_PLAN: Final = "new-plan"
+"""The event a plan is proposed on (a ``PlanProposal``)."""
+VERDICT: Final = "verdict"
+"""The event the Legitimate stage answers every proposal on (a ``Verdict``)."""
+PLAN_REJECTED: Final = "plan-rejected"
+"""The event a rejected or refused plan is announced on (a ``Verdict``): the planner's
+cue to replan within its budget."""
+
+Uid = Annotated[bytes, msgspec.Meta(min_length=16, max_length=16)]
+Nanos = Annotated[int, msgspec.Meta(ge=0)]
+"""UTC wall clock, integer nanoseconds."""
+
+
+class Empty(Message, frozen=True):
+    """A body-less event (what ``ctx.emit(name)`` sends without a message)."""
+
+    TYPE = "rap.Empty/1"
+
+
+class PlanProposal(Message, Generic[P], frozen=True):
+    """A plan put to the Legitimate stage (event ``new-plan``)."""
+
+    TYPE = "rap.PlanProposal/1"
+
+    plan_uid: Uid
+    plan_type: str
+    """The wire type of ``plan`` (its ``TYPE``, e.g. ``rap.SpinPlan/1``)."""
+    plan: P
+    proposer: str
+    created: Nanos
+    """When the plan was made; the gate refuses stale plans and plans from the future."""
+
+
+class Verdict(Message, Generic[P], frozen=True, omit_defaults=True):
+    """The Legitimate stage's decision on one plan.
+
+    An approving verdict carries the proposal it approves: the execute side acts on
+    exactly that plan, never on whatever a knowledge key holds by then."""
+
+    TYPE = "rap.Verdict/1"
+
+    plan_uid: Uid
+    approved: bool
+    legitimator: str
+    ts: Nanos
+    reason: str = ""
+    proposal: PlanProposal[P] | None = None
 
 
 class Stage(enum.StrEnum):

@@ -35,8 +35,16 @@ from typing import Annotated, Any, Literal
 import msgspec
 
 from . import keys
+from .limits import MAX_YAML_BYTES
 from .maplek import Stage
-from .yamlconf import Location, YamlDocument, YamlError, parse_yaml, render_location
+from .yamlconf import (
+    Location,
+    YamlDocument,
+    YamlError,
+    parse_yaml,
+    read_text_file,
+    render_location,
+)
 
 __all__ = [
     "ENDPOINT",
@@ -189,12 +197,8 @@ def parse_plan(text: str, source: str = "<plan>") -> PlanDocument:
 
 def load_plan(path: str | os.PathLike[str]) -> PlanDocument:
     """Read and validate a plan file (see :func:`parse_plan`)."""
-    p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise PlanError(f"{p}: cannot read the deployment plan: {exc}", source=str(p)) from None
-    return parse_plan(text, str(p))
+    text = read_text_file(path, what="deployment plan", error=PlanError, max_bytes=MAX_YAML_BYTES)
+    return parse_plan(text, str(Path(path)))
 
 
 def _check(doc: PlanDocument) -> None:

@@ -20,13 +20,17 @@ Errors: :class:`YamlError` (a ``ValueError``); callers pass their own subclass a
 from __future__ import annotations
 
 import difflib
+import os
 import re
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any, TypeVar
 
 import msgspec
 import msgspec.inspect as mi
 import yaml
+
+from .limits import MAX_TEXT_BYTES, MAX_YAML_BYTES, MAX_YAML_DEPTH
 
 __all__ = [
     "Location",
@@ -35,6 +39,7 @@ __all__ = [
     "load_yaml",
     "parse_location",
     "parse_yaml",
+    "read_text_file",
     "render_location",
 ]
 
@@ -353,10 +358,19 @@ def parse_yaml(
     what: str = "file",
     error: type[YamlError] = YamlError,
 ) -> YamlDocument:
-    """Parse one YAML document (safe loader). An empty document, invalid YAML or a
-    duplicate key raises ``error`` at its position; ``what`` names the file in messages."""
+    """Parse one YAML document (safe loader). An empty document, invalid YAML, a
+    duplicate key, or a document past the limits (:mod:`rap_schemas.limits`: size,
+    nesting, aliases that expand too far) raises ``error`` at its position; ``what``
+    names the file in messages."""
+    if len(text) > MAX_YAML_BYTES:
+        raise error(
+            f"{source}: the {what} is {len(text)} characters, over the limit of "
+            f"{MAX_YAML_BYTES}; split it or remove what is not needed",
+            source=source,
+        )
     loader = yaml.SafeLoader(text)
     try:
+        _check_shape(text, source, what, error)
         root = loader.get_single_node()
         if root is None:
             raise error(f"{source}: the {what} is empty", source=source)
@@ -376,9 +390,107 @@ def parse_yaml(
         ) from None
     except yaml.YAMLError as exc:
         raise error(f"{source}: not valid YAML: {exc}", source=source) from None
+    except RecursionError:  # _check_shape bounds nesting first; this is a last guard
+        raise error(
+            f"{source}: the {what} nests too deeply; at most {MAX_YAML_DEPTH} levels",
+            source=source,
+        ) from None
     finally:
         loader.dispose()
     return YamlDocument(source, root, data, error)
+
+
+MAX_EXPANDED_NODES = 1_000_000
+"""Nodes a document may have once its aliases are expanded (a few aliases to aliases
+would otherwise make a small file expand to billions of nodes in any reader)."""
+
+
+def _position(event: yaml.Event) -> tuple[int, int]:
+    mark = event.start_mark
+    return (mark.line + 1, mark.column + 1) if mark is not None else (0, 0)
+
+
+def _check_shape(text: str, source: str, what: str, error: type[YamlError]) -> None:
+    """Nesting depth and expanded size, from the parser's event stream (iterative, so
+    no depth can exhaust the stack before the limit is seen)."""
+    depth = 0
+    sizes: dict[str, int] = {}
+    open_: list[tuple[str | None, int]] = []  # (anchor, expanded nodes before it)
+    total = 0
+    for event in yaml.parse(text, Loader=yaml.SafeLoader):
+        if isinstance(event, yaml.CollectionStartEvent):
+            depth += 1
+            if depth > MAX_YAML_DEPTH:
+                line, column = _position(event)
+                raise error(
+                    f"{source}:{line}:{column}: the {what} nests lists or mappings more "
+                    f"than {MAX_YAML_DEPTH} levels deep; flatten it",
+                    source=source,
+                    line=line,
+                    column=column,
+                )
+            open_.append((event.anchor, total))
+            total += 1
+        elif isinstance(event, yaml.CollectionEndEvent):
+            depth -= 1
+            anchor, before = open_.pop()
+            if anchor is not None:
+                sizes[anchor] = total - before
+        elif isinstance(event, yaml.ScalarEvent):
+            total += 1
+            if event.anchor is not None:
+                sizes[event.anchor] = 1
+        elif isinstance(event, yaml.AliasEvent):
+            total += sizes.get(event.anchor or "", 1)
+        if total > MAX_EXPANDED_NODES:
+            line, column = _position(event)
+            raise error(
+                f"{source}:{line}:{column}: the {what} expands to more than "
+                f"{MAX_EXPANDED_NODES} values (aliases of aliases); write it out plainly",
+                source=source,
+                line=line,
+                column=column,
+            )
+
+
+def read_text_file(
+    path: str | os.PathLike[str],
+    *,
+    what: str = "file",
+    error: type[YamlError] = YamlError,
+    max_bytes: int = MAX_TEXT_BYTES,
+) -> str:
+    """The UTF-8 text of ``path``. A file that cannot be read, is larger than
+    ``max_bytes`` or is not UTF-8 text (a binary file) raises ``error`` naming the file
+    (and the line and column of the first bad byte)."""
+    p = Path(path)
+    source = str(p)
+    try:
+        with p.open("rb") as f:
+            data = f.read(max_bytes + 1)
+    except IsADirectoryError:
+        raise error(f"{source}: is a directory; give the {what} file", source=source) from None
+    except OSError as exc:
+        reason = exc.strerror or str(exc)
+        raise error(f"{source}: cannot read the {what}: {reason}", source=source) from None
+    if len(data) > max_bytes:
+        raise error(
+            f"{source}: the {what} is larger than {max_bytes} bytes; split it",
+            source=source,
+        )
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        head = data[: exc.start]
+        line = head.count(b"\n") + 1
+        column = exc.start - (head.rfind(b"\n") + 1) + 1
+        raise error(
+            f"{source}:{line}:{column}: the {what} is not UTF-8 text (byte "
+            f"0x{data[exc.start]:02x}); is it a binary file? give the {what} in text form",
+            source=source,
+            line=line,
+            column=column,
+        ) from None
 
 
 def load_yaml(

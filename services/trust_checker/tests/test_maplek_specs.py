@@ -36,6 +36,7 @@ from rap_schemas import (
 )
 from rap_sdk import Context, Fabric, MemoryFabric, Node
 from rap_sdk.gate import PLAN_REJECTED, ApprovalGate, TrustGuard
+from rap_sdk.node import EVENT_POLICY
 from rap_sdk.testing import Harness, Record
 from sim_world.world import Occlusion, default_world_path, load_world
 from trust_checker.config import FabricConfig
@@ -218,11 +219,13 @@ def careless_executor() -> Node:
     (RPIO's Execute did that)."""
     exe = Node("executor", stage="execute")
 
-    @exe.on_event("verdict")
     async def act(ctx: Context) -> None:
         plan = await ctx.kb.read(DIRECTIONS, SpinPlan)
         await ctx.publish("tb1/spin_config", plan)
 
+    # rap_sdk refuses an execute stage that takes verdicts outside the gate; this plants
+    # the fault the way a stage written without the SDK's check would have it
+    exe._route("event", "verdict", EVENT_POLICY, Verdict, gated=True)(act)
     return exe
 
 
@@ -237,7 +240,7 @@ def twin_executors(legitimate: str) -> list[Node]:
 
         @gate.on_approved(exe)
         async def act(
-            ctx: Context, proposal: PlanProposal, me: str = me, other: str = other
+            ctx: Context, proposal: PlanProposal[SpinPlan], me: str = me, other: str = other
         ) -> None:
             started[me].set()
             with anyio.fail_after(5):
@@ -388,7 +391,7 @@ async def test_a_false_guard_stops_the_robot_and_refuses_plans_until_it_is_true(
     exe = Node("executor", stage="execute")
 
     @gate.on_approved(exe)
-    async def act(ctx: Context, proposal: PlanProposal) -> None:
+    async def act(ctx: Context, proposal: PlanProposal[SpinPlan]) -> None:
         await ctx.publish("tb1/spin_config", proposal.plan)
         await ctx.kb.write(HANDLING, False)
 

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from typing import Any
 
 import msgspec
 import numpy as np
@@ -155,7 +156,7 @@ def build(
     # -- plan ------------------------------------------------------------------------------
     st = _PlanState()
 
-    @pla.on_event(ANOMALY)
+    @pla.on_event(ANOMALY, type=LidarMask)
     async def make_plan(ctx: Context) -> None:
         cfg: PlanConfig = ctx.config
         mask = await ctx.kb.read(LIDAR_MASK, LidarMask)
@@ -167,7 +168,7 @@ def build(
         st.current = (await propose(ctx, spin)).plan_uid
 
     @pla.on_event(PLAN_REJECTED)
-    async def replan(ctx: Context, verdict: Verdict) -> None:
+    async def replan(ctx: Context, verdict: Verdict[Any]) -> None:
         cfg: PlanConfig = ctx.config
         if verdict.plan_uid != st.current:
             return  # not the plan in hand (a refused replay of an older one, say)
@@ -194,12 +195,12 @@ def build(
 
     # -- legitimate ------------------------------------------------------------------------
     @legitimate(leg)
-    async def check(ctx: Context, proposal: PlanProposal) -> str | None:
+    async def check(ctx: Context, proposal: PlanProposal[SpinPlan]) -> str | None:
         return check_plan(proposal, ctx.clock.time_ns(), ctx.config)
 
     # -- execute ---------------------------------------------------------------------------
     @gate.on_approved(exe)
-    async def act(ctx: Context, proposal: PlanProposal) -> None:
+    async def act(ctx: Context, proposal: PlanProposal[SpinPlan]) -> None:
         await ctx.publish(spin_topic, proposal.plan)
         await ctx.kb.write(HANDLING, False)
 

@@ -84,7 +84,7 @@ class LegitimacyConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     """A plan older than this (s; one scan period at 5 Hz) is stale."""
 
 
-def check_plan(proposal: PlanProposal, now_ns: int, cfg: LegitimacyConfig) -> str | None:
+def check_plan(proposal: PlanProposal[SpinPlan], now_ns: int, cfg: LegitimacyConfig) -> str | None:
     """None when the plan may run, else why not."""
     plan = proposal.plan
     if not (math.isfinite(plan.period) and plan.period > 0):

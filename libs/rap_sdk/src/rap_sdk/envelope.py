@@ -16,7 +16,8 @@ from dataclasses import dataclass
 from typing import Any, Final, Generic, Protocol, TypeVar
 
 import msgspec
-from rap_schemas import Envelope, Message
+from rap_schemas import Empty, Envelope, Message
+from rap_schemas.limits import DECODE_ERRORS, decode_failure
 
 from .errors import RejectedSample
 
@@ -76,7 +77,7 @@ class _UidSource:
 
 
 new_uid = _UidSource()
-_EMPTY: Final = "rap.Empty/1"
+_EMPTY: Final = Empty()
 
 
 B = TypeVar("B")
@@ -145,9 +146,11 @@ class Sealer:
         cause: bytes | None = None,
         ctx: dict[str, int] | None = None,
     ) -> tuple[bytes, OutgoingEnvelope]:
-        """Seal a typed message: envelope and body are encoded in one pass."""
-        tname = _EMPTY if message is None else message.TYPE
-        return self._seal(key, tname, message, cycle, cause, ctx)
+        """Seal a typed message (None: an ``rap.Empty/1`` event): envelope and body are
+        encoded in one pass."""
+        if message is None:
+            message = _EMPTY
+        return self._seal(key, message.TYPE, message, cycle, cause, ctx)
 
     def seal(
         self,
@@ -230,12 +233,12 @@ class Opener:
         the reason otherwise (the slow path, taken only for bad samples, words it)."""
         try:
             env = prepared if prepared is not None else decode(payload)
-        except (msgspec.ValidationError, msgspec.DecodeError) as exc:
+        except DECODE_ERRORS as exc:
             raw = self._diagnose(payload)  # raises when the envelope itself is bad
             who = {"source": raw.source, "type": raw.type}
             if expected is not None and raw.type != expected:
                 raise RejectedSample(f"expected type {expected}, got {raw.type!r}", **who) from None
-            reason = str(exc).replace("`$.body", "`$")
+            reason = decode_failure(exc).replace("`$.body", "`$")
             raise RejectedSample(f"invalid {raw.type} body: {reason}", **who) from None
         if expected is not None and env.type != expected:
             raise RejectedSample(
@@ -253,8 +256,10 @@ class Opener:
             return self._decode(payload)
         except msgspec.ValidationError as exc:
             raise RejectedSample(f"invalid envelope: {exc}") from None
-        except msgspec.DecodeError as exc:
-            raise RejectedSample(f"undecodable envelope ({len(payload)} bytes): {exc}") from None
+        except DECODE_ERRORS as exc:
+            raise RejectedSample(
+                f"undecodable envelope ({len(payload)} bytes): {decode_failure(exc)}"
+            ) from None
 
     def open(self, key: str, payload: bytes) -> TypedEnvelope[msgspec.Raw] | None:
         """The envelope with its body left raw, or ``None`` for a duplicate; raises

@@ -1,31 +1,45 @@
-"""The Legitimate gate (DESIGN §5): execute only ever acts on approved, fresh, unreplayed plans.
+"""The Legitimate gate: execute only ever acts on approved, fresh, unreplayed plans, of any
+plan type the application declares.
+
+    class Dock(Message, frozen=True):                     # the application's plan
+        TYPE = "app.Dock/1"
+        station: str
 
     plan = Node("planner", stage="plan")
 
-    @plan.on_event("anomaly")
+    @plan.on_event("battery-low")
     async def replan(ctx: Context) -> None:
-        await propose(ctx, spin_plan)                     # emits "new-plan"
+        await propose(ctx, Dock(station="A"))             # emits "new-plan"
 
     legit = Node("legitimate", stage="legitimate")
 
     @legitimate(legit)
-    async def check(ctx: Context, proposal: PlanProposal) -> str | None:
+    async def check(ctx: Context, proposal: PlanProposal[Dock]) -> str | None:
         return None if ok(proposal.plan) else "why not"   # None approves
 
     execute = Node("executor", stage="execute")
     gate = ApprovalGate(legitimators={"legitimate"}, max_age=0.2)
 
     @gate.on_approved(execute)
-    async def act(ctx: Context, proposal: PlanProposal) -> None: ...
+    async def act(ctx: Context, proposal: PlanProposal[Dock]) -> None: ...
 
-The legitimate side answers every proposal with a ``verdict`` event; an approving verdict
+The plan type comes from the annotation ``PlanProposal[Dock]`` (or ``plan=Dock``). The
+legitimate side answers every proposal with a ``verdict`` event, a proposal of a plan
+type it does not judge included (rejected, naming both types); an approving verdict
 carries the proposal it approves, so execute acts on exactly that plan. A rejection also
 emits ``plan-rejected`` (the planner's cue to replan within its budget). The execute side
-calls its handler only for a verdict that approves, comes from a named legitimator, is
-fresh (``max_age`` s from the plan's creation, on the runtime's clock) and whose plan
-was neither executed before nor superseded by a newer executed plan; any other verdict
-is refused, counted in :class:`GateStats`, logged, and answered with ``plan-rejected``
-(except a replayed approval of a plan that did run: there is nothing to replan).
+calls its handler only for a verdict that approves a plan of its type, comes from a
+named legitimator, is fresh (``max_age`` s from the plan's creation, on the runtime's
+clock), is not dated in the future (beyond ``max_skew``), and whose plan was neither
+executed before nor superseded by a newer executed plan; any other verdict is refused,
+counted in :class:`GateStats`, logged, and answered with ``plan-rejected`` (except a
+replayed approval of a plan that did run: there is nothing to replan). An execute-stage
+Node refuses, when it is declared, any handler that would take proposals or verdicts
+other than through :meth:`ApprovalGate.on_approved`.
+
+One legitimate event judges one plan type; a system with two kinds of plan proposes
+them on two events (``propose(ctx, plan, event=...)``, ``@legitimate(node, event=...)``)
+with a gate (and a ``verdict`` event) each.
 
 Trust-checker verdicts can veto (DESIGN §5): a :class:`TrustGuard` names guard streams,
 Bool outputs of trust specs published on ``rap/<system>/trust/<stream>``::
@@ -46,17 +60,30 @@ no streams never vetoes (continue). When every stream is true again plans flow a
 from __future__ import annotations
 
 import logging
+import typing
 from collections import OrderedDict
 from collections.abc import Awaitable, Callable, Collection
 from dataclasses import dataclass
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import anyio
-from rap_schemas import PlanProposal, SpinPlan, TrustOutput, Verdict, keys
+import msgspec
+from rap_schemas import (
+    NEW_PLAN,
+    PLAN_REJECTED,
+    VERDICT,
+    Message,
+    PlanProposal,
+    TrustOutput,
+    Verdict,
+    keys,
+)
+from rap_schemas.limits import DECODE_ERRORS, decode_failure
 
 from .envelope import new_uid
+from .errors import HandlerError
 from .inbox import InboxPolicy
-from .node import Node
+from .node import EVENT_POLICY, Node, message_class
 from .runtime import Context
 
 __all__ = [
@@ -74,12 +101,8 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-NEW_PLAN = "new-plan"
-VERDICT = "verdict"
-PLAN_REJECTED = "plan-rejected"
-
-Check = Callable[[Context, PlanProposal], Awaitable[str | None]]
-Act = Callable[[Context, PlanProposal], Awaitable[None]]
+Check = Callable[[Context, Any], Awaitable[str | None]]
+Act = Callable[[Context, Any], Awaitable[None]]
 SafeAction = Callable[[Context, str], Awaitable[None]]
 """``fn(ctx, reason)``: what the loop does when a trust guard closes (``ctx`` is that of
 the verdict that closed it: ``ctx.publish`` reaches the managed system)."""
@@ -87,27 +110,88 @@ A = TypeVar("A", bound=Act)
 C = TypeVar("C", bound=Check)
 
 
-async def propose(ctx: Context, plan: SpinPlan) -> PlanProposal:
-    """Put ``plan`` to the Legitimate stage (event ``new-plan``) in this cycle."""
+async def propose(ctx: Context, plan: Message, *, event: str = NEW_PLAN) -> PlanProposal[Any]:
+    """Put ``plan`` (a message of the application's plan type) to the Legitimate stage,
+    as event ``event`` in this cycle."""
     now = ctx.clock.time_ns()
-    proposal = PlanProposal(plan_uid=new_uid(now), plan=plan, proposer=ctx.node.name, created=now)
-    await ctx.emit(NEW_PLAN, proposal)
+    proposal = PlanProposal(
+        plan_uid=new_uid(now),
+        plan_type=plan.TYPE,
+        plan=plan,
+        proposer=ctx.node.name,
+        created=now,
+    )
+    await ctx.emit(event, proposal)
     return proposal
 
 
-def legitimate(node: Node, *, event: str = NEW_PLAN) -> Callable[[C], C]:
-    """Make ``fn(ctx, proposal) -> reason | None`` the node's legitimation of plans.
+def _plan_type(fn: Callable[..., Any], plan: type[Message] | None, where: str) -> type[Message]:
+    """The plan type of a gate handler: ``plan=``, else the annotation
+    ``PlanProposal[ThePlan]`` of its second parameter."""
+    if plan is not None:
+        if message_class(plan) is not plan:
+            raise HandlerError(f"{where}: plan={plan!r} is not a rap_schemas.Message class")
+        return plan
+    params = list(typing.get_type_hints(fn).items())
+    params = [(n, a) for n, a in params if n != "return"]
+    ann = params[1][1] if len(params) >= 2 else None
+    args = typing.get_args(ann)
+    if typing.get_origin(ann) is PlanProposal and args and message_class(args[0]) is args[0]:
+        return typing.cast("type[Message]", args[0])
+    raise HandlerError(
+        f"{where}: cannot tell the plan type of {getattr(fn, '__qualname__', fn)}: annotate "
+        "its proposal as 'PlanProposal[YourPlan]' or pass plan=YourPlan"
+    )
+
+
+class _Plans:
+    """Types the raw plan of a proposal as the declared plan type, or says why not."""
+
+    __slots__ = ("cls", "decode")
+
+    def __init__(self, cls: type[Message]) -> None:
+        self.cls = cls
+        self.decode = msgspec.msgpack.Decoder(cls).decode
+
+    def typed(self, proposal: PlanProposal[msgspec.Raw]) -> tuple[PlanProposal[Any] | None, str]:
+        if proposal.plan_type != self.cls.TYPE:
+            return None, (
+                f"a plan of type {proposal.plan_type!r}, but this stage handles "
+                f"{self.cls.TYPE}; propose it on the event of a stage that handles it"
+            )
+        try:
+            plan = self.decode(proposal.plan)
+        except DECODE_ERRORS as exc:
+            return None, f"invalid {self.cls.TYPE} plan: {decode_failure(exc)}"
+        return msgspec.structs.replace(proposal, plan=plan), ""
+
+
+def legitimate(
+    node: Node,
+    *,
+    plan: type[Message] | None = None,
+    event: str = NEW_PLAN,
+    policy: InboxPolicy | None = None,
+) -> Callable[[C], C]:
+    """Make ``fn(ctx, proposal) -> reason | None`` the node's legitimation of plans of
+    type ``plan`` (default: from the annotation ``PlanProposal[ThePlan]``).
 
     None approves; a string rejects with that reason; an exception rejects too (with
-    the exception as the reason): a check that fails never approves."""
+    the exception as the reason): a check that fails never approves. A proposal of
+    another plan type is rejected without calling ``fn``."""
 
     def register(fn: C) -> C:
-        async def decide(ctx: Context, proposal: PlanProposal) -> None:
-            try:
-                reason = await fn(ctx, proposal)
-            except Exception as exc:  # a failing check rejects, it never approves
-                log.exception("node %s: legitimation of a plan failed", ctx.node.name)
-                reason = f"legitimation failed: {type(exc).__name__}: {exc}"
+        plans = _Plans(_plan_type(fn, plan, f"node {node.name!r}, legitimate"))
+
+        async def decide(ctx: Context, proposal: PlanProposal[msgspec.Raw]) -> None:
+            typed, reason_ = plans.typed(proposal)
+            reason: str | None = reason_
+            if typed is not None:
+                try:
+                    reason = await fn(ctx, typed)
+                except Exception as exc:  # a failing check rejects, it never approves
+                    log.exception("node %s: legitimation of a plan failed", ctx.node.name)
+                    reason = f"legitimation failed: {type(exc).__name__}: {exc}"
             approved = reason is None
             verdict = Verdict(
                 plan_uid=proposal.plan_uid,
@@ -115,14 +199,14 @@ def legitimate(node: Node, *, event: str = NEW_PLAN) -> Callable[[C], C]:
                 legitimator=ctx.node.name,
                 ts=ctx.clock.time_ns(),
                 reason=reason or "",
-                proposal=proposal if approved else None,
+                proposal=typed if approved else None,
             )
             await ctx.emit(VERDICT, verdict)
             if not approved:
                 await ctx.emit(PLAN_REJECTED, verdict)
 
         decide.__qualname__ = getattr(fn, "__qualname__", decide.__qualname__)
-        node.on_event(event)(decide)
+        node._route("event", event, policy or EVENT_POLICY, PlanProposal[msgspec.Raw])(decide)
         return fn
 
     return register
@@ -136,8 +220,11 @@ class GateStats:
     """Verdicts that rejected (the legitimator emitted ``plan-rejected``)."""
     unknown_legitimator: int = 0
     malformed: int = 0
-    """Approvals without their proposal, or with a proposal of another uid."""
+    """Approvals without their proposal, with a proposal of another uid, or of a plan
+    that is not of the gate's plan type."""
     stale: int = 0
+    future: int = 0
+    """Plans dated further in the future than ``max_skew``."""
     replayed: int = 0
     superseded: int = 0
     vetoed: int = 0
@@ -149,6 +236,7 @@ class GateStats:
             self.unknown_legitimator
             + self.malformed
             + self.stale
+            + self.future
             + self.replayed
             + self.superseded
             + self.vetoed
@@ -315,24 +403,29 @@ class ApprovalGate:
         *,
         legitimators: Collection[str] | None = None,
         max_age: float | None = 1.0,
+        max_skew: float = 0.5,
         memory: int = 4096,
         guard: TrustGuard | None = None,
     ) -> None:
         """``legitimators``: node names whose verdicts count (None: any sender).
         ``max_age``: seconds a plan stays executable after its creation (None: no limit).
-        ``memory``: how many executed plan uids are remembered against replay; older
-        ones are still refused as superseded. ``guard``: trust-checker verdicts that
-        veto (:class:`TrustGuard`)."""
+        ``max_skew``: seconds a plan may be dated ahead of this node's clock (clocks
+        differ a little between machines; a plan from further ahead is refused, so that
+        a forged date cannot make every later plan look superseded). ``memory``: how
+        many executed plan uids are remembered against replay; older ones are still
+        refused as superseded. ``guard``: trust-checker verdicts that veto
+        (:class:`TrustGuard`)."""
         self.guard = guard
         self.legitimators = frozenset(legitimators) if legitimators is not None else None
         self.max_age_ns = None if max_age is None else round(max_age * 1e9)
+        self.max_skew_ns = round(max_skew * 1e9)
         self.memory = memory
         self.stats = GateStats()
         self._executed: OrderedDict[bytes, None] = OrderedDict()
         self._newest = -1
         """``created`` of the newest executed plan: anything older is superseded."""
 
-    def check(self, verdict: Verdict, source: str, now_ns: int) -> str | None:
+    def check(self, verdict: Verdict[Any], source: str, now_ns: int) -> str | None:
         """None when ``verdict`` (sent by node ``source``) may be executed now, else the
         reason it may not; counts either way and records an executable plan as executed."""
         st = self.stats
@@ -353,6 +446,13 @@ class ApprovalGate:
         if uid in self._executed:
             st.replayed += 1
             return f"plan {uid.hex()} was executed already (replayed approval)"
+        if proposal.created > now_ns + self.max_skew_ns:
+            st.future += 1
+            ahead = (proposal.created - now_ns) / 1e9
+            return (
+                f"plan {uid.hex()} is dated {ahead:.3f} s in the future (max_skew "
+                f"{self.max_skew_ns / 1e9} s): check the proposer's clock"
+            )
         if self.max_age_ns is not None and now_ns - proposal.created > self.max_age_ns:
             st.stale += 1
             age = (now_ns - proposal.created) / 1e9
@@ -371,37 +471,60 @@ class ApprovalGate:
         st.approved += 1
         return None
 
-    def on_approved(self, node: Node, *, event: str = VERDICT) -> Callable[[A], A]:
-        """Make ``fn(ctx, proposal)`` the node's execution of approved plans (and
-        subscribe ``node`` to the guard's streams, if the gate has a guard)."""
+    def on_approved(
+        self,
+        node: Node,
+        *,
+        plan: type[Message] | None = None,
+        event: str = VERDICT,
+        policy: InboxPolicy | None = None,
+    ) -> Callable[[A], A]:
+        """Make ``fn(ctx, proposal)`` the node's execution of approved plans of type
+        ``plan`` (default: from the annotation ``PlanProposal[ThePlan]``), and subscribe
+        ``node`` to the guard's streams, if the gate has a guard."""
         if self.guard is not None:
             self.guard.attach(node)
 
         def register(fn: A) -> A:
-            async def gated(ctx: Context, verdict: Verdict) -> None:
+            plans = _Plans(_plan_type(fn, plan, f"node {node.name!r}, on_approved"))
+
+            async def gated(ctx: Context, verdict: Verdict[msgspec.Raw]) -> None:
+                typed: PlanProposal[Any] | None = None
+                if verdict.approved and verdict.proposal is not None:
+                    typed, why = plans.typed(verdict.proposal)
+                    if typed is None:
+                        self.stats.malformed += 1
+                        await self._refuse(ctx, verdict, why)
+                        return
                 reason = self.check(verdict, ctx.envelope.source, ctx.clock.time_ns())
                 if reason is None:
-                    assert verdict.proposal is not None  # check() guarantees it
-                    await fn(ctx, verdict.proposal)
+                    assert typed is not None  # check() guarantees an approved proposal
+                    await fn(ctx, typed)
                     return
                 if not verdict.approved and verdict.legitimator == ctx.envelope.source:
                     return  # an honest rejection: its legitimator emitted plan-rejected
-                log.warning("node %s refused a plan: %s", ctx.node.name, reason)
                 if verdict.plan_uid in self._executed:
+                    log.warning("node %s refused a plan: %s", ctx.node.name, reason)
                     return  # that plan ran: nothing to replan, only a replay to refuse
-                await ctx.emit(
-                    PLAN_REJECTED,
-                    Verdict(
-                        plan_uid=verdict.plan_uid,
-                        approved=False,
-                        legitimator=ctx.node.name,
-                        ts=ctx.clock.time_ns(),
-                        reason=reason,
-                    ),
-                )
+                await self._refuse(ctx, verdict, reason)
 
             gated.__qualname__ = getattr(fn, "__qualname__", gated.__qualname__)
-            node.on_event(event)(gated)
+            node._route("event", event, policy or EVENT_POLICY, Verdict[msgspec.Raw], gated=True)(
+                gated
+            )
             return fn
 
         return register
+
+    async def _refuse(self, ctx: Context, verdict: Verdict[Any], reason: str) -> None:
+        log.warning("node %s refused a plan: %s", ctx.node.name, reason)
+        await ctx.emit(
+            PLAN_REJECTED,
+            Verdict(
+                plan_uid=verdict.plan_uid,
+                approved=False,
+                legitimator=ctx.node.name,
+                ts=ctx.clock.time_ns(),
+                reason=reason,
+            ),
+        )

@@ -26,13 +26,23 @@ from dataclasses import dataclass
 from typing import Any, Literal, TypeVar
 
 import msgspec
-from rap_schemas import Message, Stage, keys
+from rap_schemas import (
+    NEW_PLAN,
+    VERDICT,
+    Empty,
+    Message,
+    PlanProposal,
+    Stage,
+    TrustOutput,
+    Verdict,
+    keys,
+)
 
 from .envelope import TypedEnvelope, typed_decoder
 from .errors import ConfigError, HandlerError
 from .inbox import InboxPolicy, Overflow
 
-__all__ = ["DATA_POLICY", "EVENT_POLICY", "TRUST_POLICY", "Node", "Route"]
+__all__ = ["DATA_POLICY", "EVENT_POLICY", "TRUST_POLICY", "Node", "Route", "message_class"]
 
 F = TypeVar("F", bound=Callable[..., Awaitable[None]])
 
@@ -57,11 +67,16 @@ class Route:
     kind: RouteKind
     name: str
     fn: Callable[..., Awaitable[None]]
-    msg_type: type[Message] | None
-    """None: the handler takes no message; the body is not decoded."""
+    msg_type: type[Message]
+    """The declared message type: every sample on the route is checked against it and
+    its body decoded with it, whether or not the handler takes the message."""
+    takes_message: bool
+    """Whether the handler is ``fn(ctx, message)`` (else ``fn(ctx)``)."""
     decode: Callable[[bytes], TypedEnvelope[Any]]
-    """Envelope and body in one pass (body left raw when ``msg_type`` is None)."""
+    """Envelope and body in one pass, typed."""
     policy: InboxPolicy
+    check: Callable[[Any], str | None] | None = None
+    """A further check of a decoded body (None: accept); a reason rejects the sample."""
 
     @property
     def handler_name(self) -> str:
@@ -79,7 +94,8 @@ class Route:
         return self.kind != "trust"
 
 
-def _message_type(fn: Callable[..., Any], where: str) -> type[Message] | None:
+def _signature(fn: Callable[..., Any], where: str) -> tuple[bool, Any]:
+    """(takes a message, its annotation or None)."""
     if not inspect.iscoroutinefunction(fn):
         raise HandlerError(f"{where}: handler {fn!r} must be an 'async def' function")
     params = list(inspect.signature(fn).parameters.values())
@@ -91,7 +107,7 @@ def _message_type(fn: Callable[..., Any], where: str) -> type[Message] | None:
             f"got ({', '.join(p.name for p in params)})"
         )
     if len(params) == 1:
-        return None
+        return False, None
     try:
         hints = typing.get_type_hints(fn)
     except (NameError, TypeError) as exc:
@@ -99,13 +115,16 @@ def _message_type(fn: Callable[..., Any], where: str) -> type[Message] | None:
             f"{where}: cannot resolve the annotations of {fn.__qualname__} ({exc}); define "
             "message types at module level"
         ) from None
-    ann = hints.get(params[1].name)
-    if not (isinstance(ann, type) and issubclass(ann, Message) and ann.TYPE):
-        raise HandlerError(
-            f"{where}: the message parameter {params[1].name!r} of {fn.__qualname__} must "
-            f"be annotated with a rap_schemas.Message subclass, got {ann!r}"
-        )
-    return ann
+    return True, hints.get(params[1].name)
+
+
+def message_class(ann: Any) -> type[Message] | None:
+    """The Message class of an annotation (``LaserScan``, or ``PlanProposal[SpinPlan]``
+    for a generic message), or None when it is not one."""
+    cls = typing.get_origin(ann) or ann
+    if isinstance(cls, type) and issubclass(cls, Message) and cls.TYPE:
+        return cls
+    return None
 
 
 class Node:
@@ -141,24 +160,75 @@ class Node:
         kind: RouteKind,
         name: str,
         policy: InboxPolicy,
+        declared: Any = None,
+        *,
+        check: Callable[[Any], str | None] | None = None,
+        gated: bool = False,
     ) -> Callable[[F], F]:
+        """Register a handler. ``declared``: the message type given by the decorator (may
+        be a parametrized generic such as ``PlanProposal[SpinPlan]``); the handler's
+        annotation may give it instead; without either a handler that takes no message
+        gets ``rap.Empty/1`` events (``rap.TrustOutput/1`` on trust routes)."""
         _BUILDERS[kind]("x", name)  # validates the topic / event name / trust stream
 
         def register(fn: F) -> F:
             where = f"node {self.name!r}, {kind} {name!r}"
-            msg_type = _message_type(fn, where)
-            self.routes.append(Route(kind, name, fn, msg_type, typed_decoder(msg_type), policy))
+            takes, ann = _signature(fn, where)
+            if takes and message_class(ann) is None:
+                raise HandlerError(
+                    f"{where}: the message parameter of {fn.__qualname__} must be annotated "
+                    f"with a rap_schemas.Message subclass, got {ann!r}"
+                )
+            wire = declared if declared is not None else ann
+            if wire is None:
+                wire = TrustOutput if kind == "trust" else Empty
+            cls = message_class(wire)
+            if cls is None:
+                raise HandlerError(
+                    f"{where}: type={wire!r} is not a rap_schemas.Message subclass with a TYPE"
+                )
+            if takes and declared is not None and message_class(ann) is not cls:
+                raise HandlerError(
+                    f"{where}: {fn.__qualname__} takes a {ann!r} but the route is declared "
+                    f"with type={cls.__name__}; make them agree (or drop type=)"
+                )
+            if not gated:
+                self._refuse_ungated_plans(kind, name, cls, fn, where)
+            self.routes.append(
+                Route(kind, name, fn, cls, takes, typed_decoder(wire), policy, check)
+            )
             return fn
 
         return register
 
-    def on_data(self, topic: str, *, policy: InboxPolicy | None = None) -> Callable[[F], F]:
-        """Handle samples on ``rap/<system>/data/<topic>``."""
-        return self._route("data", topic, policy or DATA_POLICY)
+    def _refuse_ungated_plans(
+        self, kind: str, name: str, cls: type[Message], fn: Callable[..., Any], where: str
+    ) -> None:
+        """An execute stage acts only on approved plans: it may not take proposals or
+        verdicts except through the Legitimate gate."""
+        if self.stage is not Stage.EXECUTE:
+            return
+        if cls in (PlanProposal, Verdict) or (kind == "event" and name in (NEW_PLAN, VERDICT)):
+            raise HandlerError(
+                f"{where}: {fn.__qualname__} would take plans directly, but node "
+                f"{self.name!r} is an execute stage: it may act only on plans that the "
+                "Legitimate stage approved; declare the handler with "
+                "'@gate.on_approved(node)' (gate = rap_sdk.gate.ApprovalGate(...))"
+            )
 
-    def on_event(self, name: str, *, policy: InboxPolicy | None = None) -> Callable[[F], F]:
-        """Handle events on ``rap/<system>/event/<name>``."""
-        return self._route("event", name, policy or EVENT_POLICY)
+    def on_data(
+        self, topic: str, *, type: Any = None, policy: InboxPolicy | None = None
+    ) -> Callable[[F], F]:
+        """Handle samples on ``rap/<system>/data/<topic>``. ``type``: the message type
+        of the topic when the handler does not take the message."""
+        return self._route("data", topic, policy or DATA_POLICY, type)
+
+    def on_event(
+        self, name: str, *, type: Any = None, policy: InboxPolicy | None = None
+    ) -> Callable[[F], F]:
+        """Handle events on ``rap/<system>/event/<name>``. ``type``: the event's message
+        type when the handler does not take the message (default ``rap.Empty/1``)."""
+        return self._route("event", name, policy or EVENT_POLICY, type)
 
     def on_trust(self, stream: str, *, policy: InboxPolicy | None = None) -> Callable[[F], F]:
         """Handle a trust checker's output ``stream`` (``rap/<system>/trust/<stream>``,

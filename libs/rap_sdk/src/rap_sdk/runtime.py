@@ -382,21 +382,20 @@ class NodeRuntime:
     async def handle(self, route: Route, sample: Sample) -> None:
         """Open, check, decode and dispatch one sample to ``route``'s handler."""
         self.stats.received += 1
-        msg_type = route.msg_type
         try:
             env = self.opener.open_typed(
-                sample.key,
-                sample.payload,
-                route.decode,
-                msg_type.TYPE if msg_type else None,
-                sample.prepared,
+                sample.key, sample.payload, route.decode, route.msg_type.TYPE, sample.prepared
             )
+            if env is None:
+                return  # duplicate, counted by the opener
+            if route.check is not None:
+                reason = route.check(env.body)
+                if reason is not None:
+                    raise RejectedSample(reason, source=env.source, type=env.type)
         except RejectedSample as exc:
             await self._reject(sample.key, exc.reason, exc.source, exc.type)
             return
-        if env is None:
-            return  # duplicate, counted by the opener
-        ctx = Context(self, sample.key, env, env.body if msg_type is not None else None)
+        ctx = Context(self, sample.key, env, env.body)
         if self._lock is None:
             await self._call(route, ctx)
         else:
@@ -413,10 +412,10 @@ class NodeRuntime:
             await self._trace(route, "start", ctx.key, env, cycle, start)
         error = ""
         try:
-            if route.msg_type is None:
-                await route.fn(ctx)
-            else:
+            if route.takes_message:
                 await route.fn(ctx, ctx.message)
+            else:
+                await route.fn(ctx)
         except Exception as exc:  # a handler bug must not stop the node
             error = f"{type(exc).__name__}: {exc}"
             self.stats.failed += 1

@@ -11,8 +11,8 @@ from types import TracebackType
 from typing import Any, Generic, Self, TypeVar
 
 import anyio
-import msgspec
 from anyio.abc import TaskGroup
+from rap_schemas.limits import DECODE_ERRORS
 
 from ..errors import LifecycleError, QueryError
 from ..inbox import Inbox, InboxPolicy, InboxStats
@@ -94,7 +94,7 @@ def prepared(prepare: Prepare, payload: bytes) -> Any:
     itself and words the rejection."""
     try:
         return prepare(payload)
-    except msgspec.MsgspecError:
+    except DECODE_ERRORS:
         return None
 
 
