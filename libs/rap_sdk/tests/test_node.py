@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import logging
 import math
 from typing import Any
 
@@ -30,6 +31,7 @@ from rap_sdk import (
     run_nodes,
 )
 from rap_sdk.fabric import Sample
+from rap_sdk.rejections import Rejections
 from rap_sdk.testing import Harness
 
 pytestmark = pytest.mark.anyio
@@ -162,8 +164,7 @@ async def test_rejection_reasons_name_the_path_and_type() -> None:
     async with MemoryFabric() as fabric, run_nodes(fabric, [node], system="t") as group:
         rt = group["n"]
         log = fabric.subscribe(keys.log("t", "n"))
-        clock_ns = iter(range(0, 100 * 10**9, 2 * 10**9))  # 2 s apart: no rate limit
-        rt.clock = type("C", (), {"time_ns": staticmethod(lambda: next(clock_ns))})()
+        rt.rejections = Rejections("n", logging.getLogger("test"), interval_ns=0)  # no limit
         sealer = Sealer("src")
         key = keys.data("t", "scan")
         bad_body = msgspec.msgpack.encode({"stamp": "x"})

@@ -21,7 +21,7 @@ from typing import Any
 
 import anyio
 from anyio.abc import TaskStatus
-from rap_schemas import KnowledgeAccess, Message, Rejection, StageTrace, keys
+from rap_schemas import KnowledgeAccess, Message, StageTrace, keys
 
 from .envelope import (
     Clock,
@@ -36,12 +36,12 @@ from .errors import LifecycleError, RapError, RejectedSample
 from .fabric import Fabric, Sample, Subscription
 from .knowledge import _MISSING, KnowledgeClient
 from .node import Node, Route
+from .rejections import Rejections
 
 __all__ = ["Context", "NodeGroup", "NodeRuntime", "NodeStats", "await_alive", "run_nodes"]
 
 log = logging.getLogger(__name__)
 
-REJECTION_INTERVAL_NS = 1_000_000_000
 RECORD_TIMEOUT = 1.0
 """Seconds a trace or rejection record may wait for room in a local inbox."""
 
@@ -196,16 +196,6 @@ class ContextKnowledge:
         return version
 
 
-class _RateLimited:
-    """Per-key rejection records: the first at once, then one per interval with a count."""
-
-    __slots__ = ("last", "pending")
-
-    def __init__(self) -> None:
-        self.last = -REJECTION_INTERVAL_NS
-        self.pending = 0
-
-
 class NodeRuntime:
     """One node running on one fabric."""
 
@@ -231,7 +221,7 @@ class NodeRuntime:
         # several, a lock keeps one handler at a time (asyncio's: no loop turn uncontended)
         self._lock = asyncio.Lock() if len(node.routes) > 1 else None
         self._subs: list[Subscription] = []
-        self._rejections: dict[str, _RateLimited] = {}
+        self.rejections = Rejections(node.name, log, clock=self.clock.time_ns)
         self._trace_key = keys.trace(system, node.name)
         self._log_key = keys.log(system, node.name)
         self._stopping: anyio.Event | None = None
@@ -350,34 +340,15 @@ class NodeRuntime:
 
     async def _reject(self, key: str, reason: str, source: str = "", type_: str = "") -> None:
         self.stats.rejected += 1
-        rl = self._rejections.get(key)
-        if rl is None:
-            rl = self._rejections[key] = _RateLimited()
-        now = self.clock.time_ns()
-        rl.pending += 1
-        if now - rl.last < REJECTION_INTERVAL_NS:
-            return
-        count, rl.pending, rl.last = rl.pending, 0, now
-        log.warning("node %s rejected %d sample(s) on %s: %s", self.node.name, count, key, reason)
-        rec = Rejection(
-            node=self.node.name,
-            key=key,
-            reason=reason,
-            ts=now,
-            count=count,
-            source=source,
-            type=type_,
-        )
-        payload, _ = self.sealer.seal_message(self._log_key, rec)
-        await self._publish_record(self._log_key, payload)
+        rec = self.rejections.reject(key, reason, source=source, type=type_)
+        if rec is not None:
+            payload, _ = self.sealer.seal_message(self._log_key, rec)
+            await self._publish_record(self._log_key, payload)
 
     async def _flush_rejections(self) -> None:
-        for key, rl in self._rejections.items():
-            if rl.pending:
-                rl.last = -REJECTION_INTERVAL_NS
-                rl.pending -= 1
-                await self._reject(key, "further samples rejected (see earlier reason)")
-                self.stats.rejected -= 1
+        for rec in self.rejections.flush():
+            payload, _ = self.sealer.seal_message(self._log_key, rec)
+            await self._publish_record(self._log_key, payload)
 
     async def handle(self, route: Route, sample: Sample) -> None:
         """Open, check, decode and dispatch one sample to ``route``'s handler."""
