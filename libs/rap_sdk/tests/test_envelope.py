@@ -42,7 +42,7 @@ def test_cycle_cause_and_ctx_are_carried() -> None:
 def test_duplicates_dropped_gaps_and_reordering_counted() -> None:
     s = Sealer("src", FixedClock())
     p = [sealed(s) for _ in range(6)]
-    o = Opener()
+    o = Opener(FixedClock())
     order = [0, 1, 1, 3, 2, 5, 3]  # dup of 1, 2 late, 4 never, dup of 3
     got = [o.open("rap/s/data/x", p[i]) for i in order]
     assert [e.seq if e else None for e in got] == [0, 1, None, 3, 2, 5, None]
@@ -54,7 +54,7 @@ def test_duplicates_dropped_gaps_and_reordering_counted() -> None:
 def test_a_restarted_sender_is_not_taken_for_duplicates() -> None:
     clock = FixedClock()
     first = Sealer("src", clock)
-    o = Opener()
+    o = Opener(clock)
     for _ in range(3):
         assert o.open("rap/s/data/x", sealed(first)) is not None
     again = Sealer("src", clock)  # same node id, new process: seq starts at 0
@@ -64,8 +64,9 @@ def test_a_restarted_sender_is_not_taken_for_duplicates() -> None:
 
 
 def test_sequences_are_tracked_per_key() -> None:
-    s = Sealer("src", FixedClock())
-    o = Opener()
+    clock = FixedClock()
+    s = Sealer("src", clock)
+    o = Opener(clock)
     for key in ("rap/a", "rap/b", "rap/a", "rap/b"):
         assert o.open(key, sealed(s, key)) is not None
     assert o.stats.missing == 0
@@ -96,10 +97,33 @@ def test_bad_envelopes_are_rejected_with_a_reason(payload: bytes, reason: str) -
         Opener().open("rap/s/data/x", payload)
 
 
+def test_an_envelope_from_the_future_is_rejected_and_cannot_block_its_sender() -> None:
+    clock = FixedClock()
+    real = Sealer("monitor", clock)
+    o = Opener(clock)
+    assert o.open("rap/s/data/x", sealed(real)) is not None
+    forged = msgspec.msgpack.encode(
+        Envelope(
+            uid=b"f" * 16,
+            ts=clock.now + 10 * 365 * 86_400 * 10**9,  # ten years ahead
+            source="monitor",
+            seq=2**62,
+            type="rap.Empty/1",
+            body=msgspec.Raw(b"\x80"),
+        )
+    )
+    with pytest.raises(RejectedSample, match="in the future"):
+        o.open("rap/s/data/x", forged)
+    assert o.stats.future == 1
+    for _ in range(3):  # the real sender's next samples still arrive
+        assert o.open("rap/s/data/x", sealed(real)) is not None
+
+
 def test_a_very_old_sample_is_dropped_not_taken_for_a_restart() -> None:
-    s = Sealer("src", FixedClock())
+    clock = FixedClock()
+    s = Sealer("src", clock)
     p = [sealed(s) for _ in range(100)]
-    o = Opener()
+    o = Opener(clock)
     for payload in p:
         assert o.open("rap/s/data/x", payload) is not None
     assert o.open("rap/s/data/x", p[10]) is None  # a stale copy: older ts, far back
@@ -109,9 +133,10 @@ def test_a_very_old_sample_is_dropped_not_taken_for_a_restart() -> None:
 
 
 def test_samples_from_before_a_late_join_do_not_make_missing_negative() -> None:
-    s = Sealer("src", FixedClock())
+    clock = FixedClock()
+    s = Sealer("src", clock)
     p = [sealed(s) for _ in range(6)]
-    o = Opener()
+    o = Opener(clock)
     assert o.open("rap/s/data/x", p[5]) is not None  # joined late, at seq 5
     assert o.open("rap/s/data/x", p[3]) is not None  # an earlier one arrives after
     assert o.open("rap/s/data/x", p[3]) is None

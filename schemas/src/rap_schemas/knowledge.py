@@ -12,11 +12,16 @@ Versions are 64-bit hybrid-logical-clock stamps, totally ordered across writers:
 
 from __future__ import annotations
 
+from typing import Final
+
 import msgspec
 
 from .message import Message
 
 __all__ = [
+    "EPOCH_MS",
+    "MAX_DRIFT_MS",
+    "MAX_VALUE_BYTES",
     "MODELS_PREFIX",
     "KbDelete",
     "KbGet",
@@ -31,10 +36,20 @@ __all__ = [
     "ModelMeta",
     "ModelPin",
     "ModelPut",
+    "RecordError",
+    "check_record",
 ]
 
 MODELS_PREFIX = "_models"
 """Knowledge keys under ``_models/`` belong to the model store."""
+EPOCH_MS: Final = 1_704_067_200_000
+"""2024-01-01T00:00:00Z: the zero of a version's time part."""
+MAX_DRIFT_MS: Final = 60_000
+"""How far ahead of the reader's clock a version's time may be. A version from the far
+future would win every later write, freeze the key at that value, and push every
+writer's clock past it: the service and every replica refuse it."""
+MAX_VALUE_BYTES: Final = 1 << 20
+"""A value's size limit (the service's default ``max_value_bytes``)."""
 
 
 class KbRecord(Message, frozen=True, omit_defaults=True):
@@ -149,3 +164,39 @@ class KbReply(msgspec.Struct, frozen=True, kw_only=True, omit_defaults=True):
     models: list[ModelMeta] = []
     data: bytes = b""
     pinned: int | None = None
+
+
+class RecordError(ValueError):
+    """A record outside the bounds every holder of knowledge applies; ``code`` is the
+    service's error kind (``bad-request`` or ``too-large``)."""
+
+    def __init__(self, message: str, code: str = "bad-request") -> None:
+        super().__init__(message)
+        self.code = code
+
+
+def check_record(rec: KbRecord, *, now_ms: int, max_value_bytes: int = MAX_VALUE_BYTES) -> None:
+    """The bounds of a record, the same for the service and every replica: a version
+    in 1 .. 2**63-1 whose time is at most ``MAX_DRIFT_MS`` ahead of ``now_ms`` (UTC
+    ms), a ``ts`` in 0 .. 2**63-1, a value of at most ``max_value_bytes``. Raises
+    :class:`RecordError`. (The key's syntax is checked where it is used.)"""
+    if not 0 < rec.version < 2**63:
+        raise RecordError(
+            f"record for {rec.key!r} has version {rec.version}; versions are in "
+            "1 .. 2**63-1 (hybrid-logical-clock stamps)"
+        )
+    if rec.version >> 20 > now_ms - EPOCH_MS + MAX_DRIFT_MS:
+        raise RecordError(
+            f"record for {rec.key!r} has a version {rec.version} more than "
+            f"{MAX_DRIFT_MS // 1000} s ahead of this clock; check the writer's clock"
+        )
+    if not 0 <= rec.ts < 2**63:
+        raise RecordError(
+            f"record for {rec.key!r}: ts must be UTC nanoseconds in 0 .. 2**63-1, got {rec.ts}"
+        )
+    if len(rec.value) > max_value_bytes:
+        raise RecordError(
+            f"value for {rec.key!r} is {len(rec.value)} bytes, over the limit of "
+            f"{max_value_bytes}; store large artefacts in the model store",
+            "too-large",
+        )

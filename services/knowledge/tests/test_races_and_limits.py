@@ -16,7 +16,7 @@ from knowledge.app import open_service
 from knowledge.config import HistoryRule, KnowledgeConfig
 from knowledge.core import Retention
 from rap_schemas import KbPut, KbRecord, KbReply, keys
-from rap_sdk import MemoryBus, MemoryFabric
+from rap_sdk import MemoryBus, MemoryFabric, Sealer
 from rap_sdk.knowledge import EPOCH_MS, HybridClock, KnowledgeClient, KnowledgeError
 
 from services.knowledge.tests.deployment import deployment
@@ -60,6 +60,35 @@ async def test_out_of_range_and_far_future_versions_are_refused() -> None:
                 await anyio.wait_all_tasks_blocked()
         assert d.service.stats.stream_rejected == 3
         assert await w.write("k", "fine", durable=True) > 0  # still serving
+
+
+@pytest.mark.parametrize("kind", ["memory", pytest.param("zenoh", marks=pytest.mark.zenoh)])
+async def test_a_replica_applies_the_services_bounds(kind: str) -> None:
+    """A record the service refuses (version 2**63-1, an hour ahead, too large) was
+    adopted for good by every replica: the key froze at the forged value."""
+    async with deployment(kind) as d:
+        reader, writer = await d.client("reader"), await d.client("writer")
+        await writer.write("scan", "real 1", durable=True)
+        assert await reader.read("scan") == "real 1"  # replicated now
+        key = keys.kb("t", "scan")
+        assert d.service is not None
+        forger = Sealer("forger")
+        fabric = d.service.fabric  # the reader is linked to the service's session
+        for rec in (
+            record("scan", 2**63 - 1, "forged"),
+            record("scan", far_future_version(), "forged"),
+            record("scan", writer.clock.next(), "x" * (2 << 20)),  # over the 1 MiB limit
+            record("other", 7, "forged"),  # a record for another key on this stream
+        ):
+            payload, _ = forger.seal_message(key, rec)
+            await fabric.publish(key, payload)
+        with anyio.fail_after(5):
+            while reader.rejections.total < 4:
+                await anyio.wait_all_tasks_blocked()
+        assert await reader.read("scan") == "real 1"
+        v = await writer.write("scan", "real 2")
+        assert await reader.read("scan", min_version=v) == "real 2"  # not frozen
+        assert sum(reader.rejections.by_reason.values()) == 4
 
 
 def test_a_clock_does_not_follow_a_version_from_the_far_future() -> None:

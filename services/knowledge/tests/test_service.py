@@ -96,8 +96,14 @@ async def test_bad_requests_get_a_reason_and_the_service_carries_on(kind: str) -
             return msgspec.msgpack.decode(reply.payload, type=KbReply)
 
         for payload, code, words in [
-            (b"\xc1", "bad-request", "undecodable knowledge request"),
-            (msgspec.msgpack.encode({"op": "explode"}), "bad-request", "invalid knowledge"),
+            (b"\xc1", "bad-request", "knowledge request: undecodable"),
+            (msgspec.msgpack.encode({"op": "explode"}), "bad-request", "knowledge request: "),
+            (  # an unknown field nested 5000 deep: skipped by the decoder, still bounded
+                b"\x83\xa2op\xa3get\xa3key\xa1k\xa1x" + b"\x91" * 5000 + b"\xc0",
+                "bad-request",
+                "nested too deeply",
+            ),
+            (b"\xdd\xff\xff\xff\xff", "bad-request", "knowledge request: "),
             (msgspec.msgpack.encode({"op": "get", "key": "a//b"}), "bad-request", "chunk"),
             (
                 msgspec.msgpack.encode({"op": "history", "key": "k", "limit": 0}),
@@ -113,6 +119,9 @@ async def test_bad_requests_get_a_reason_and_the_service_carries_on(kind: str) -
             reply = await raw("k", payload)
             assert (reply.ok, reply.code) == (False, code)
             assert words in reply.error
+        assert d.service is not None
+        assert d.service.rejections.total == 5  # the ones that did not decode, by reason
+        assert await w.read("k", default=None) is None  # and the service still answers
         with pytest.raises(KnowledgeError, match="over the limit of 1000") as exc:
             await w.write("big", "x" * 2000, durable=True)
         assert exc.value.code == "too-large"
@@ -122,7 +131,7 @@ async def test_bad_requests_get_a_reason_and_the_service_carries_on(kind: str) -
             await w.write("_models/x", 1)
         assert await w.write("fine", 1, durable=True) > 0  # still serving
         assert d.service is not None
-        assert d.service.stats.query_errors == 6
+        assert d.service.stats.query_errors == 8
 
 
 @pytest.mark.parametrize("kind", KINDS)

@@ -203,20 +203,29 @@ class SenderStats:
     stale: int = 0
     """Samples older than the 64-sample window (and not newer in ts): dropped, since
     they cannot be told from a replay."""
+    future: int = 0
+    """Samples dated further ahead of this clock than ``Opener.max_skew_ns``: rejected."""
 
 
 _WINDOW: Final = 64
 _FULL: Final = (1 << _WINDOW) - 1
+MAX_SKEW_NS: Final = 5_000_000_000
+"""How far ahead of the receiver's clock an envelope's ``ts`` may be (clocks of two
+machines differ a little). A sample from further ahead is rejected: taken as the newest
+of its sender, it would make the sender's real samples look stale."""
 
 
 class Opener:
-    """Strict envelope decoding plus per-(source, key) sequence tracking."""
+    """Strict envelope decoding plus per-(source, key) sequence tracking; envelopes
+    dated more than ``max_skew_ns`` ahead of ``clock`` are rejected."""
 
-    __slots__ = ("_decode", "_streams", "stats")
+    __slots__ = ("_decode", "_now", "_streams", "max_skew_ns", "stats")
 
-    def __init__(self) -> None:
+    def __init__(self, clock: Clock | None = None, *, max_skew_ns: int = MAX_SKEW_NS) -> None:
         self._decode = msgspec.msgpack.Decoder(Envelope).decode
+        self._now = (clock or SystemClock()).time_ns
         self._streams: dict[tuple[str, str], list[int]] = {}
+        self.max_skew_ns = max_skew_ns
         self.stats = SenderStats()
 
     def open_typed(
@@ -247,7 +256,19 @@ class Opener:
         if len(env.uid) != 16 or env.seq < 0:
             raise RejectedSample(
                 f"invalid envelope: uid must be 16 bytes and seq >= 0, got "
-                f"{len(env.uid)} bytes and seq={env.seq}"
+                f"{len(env.uid)} bytes and seq={env.seq}",
+                source=env.source,
+                type=env.type,
+            )
+        ahead = env.ts - self._now()
+        if ahead > self.max_skew_ns:
+            self.stats.future += 1
+            raise RejectedSample(
+                f"envelope dated {ahead / 1e9:.3f} s in the future (at most "
+                f"{self.max_skew_ns / 1e9:g} s of clock skew is accepted): check the sender's "
+                "clock",
+                source=env.source,
+                type=env.type,
             )
         return env if self._track(env.source, key, env.seq, env.ts) else None
 

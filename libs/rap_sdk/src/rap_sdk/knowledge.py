@@ -43,11 +43,27 @@ from rap_schemas import (
     ModelPut,
     keys,
 )
+from rap_schemas.knowledge import (
+    EPOCH_MS,
+    MAX_DRIFT_MS,
+    MAX_VALUE_BYTES,
+    RecordError,
+    check_record,
+)
+from rap_schemas.limits import (
+    DECODE_ERRORS,
+    MAX_DEPTH,
+    DecodeRejected,
+    SafeDecoder,
+    check_depth,
+    decode_failure,
+)
 
 from .envelope import Opener, Sealer, typed_decoder
 from .errors import LifecycleError, QueryError, RapError, RejectedSample
 from .fabric import Fabric, Subscription
 from .inbox import InboxPolicy, Overflow
+from .rejections import Rejections
 
 __all__ = [
     "HybridClock",
@@ -61,11 +77,10 @@ log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 _MISSING: Final = object()
-EPOCH_MS: Final = 1_704_067_200_000  # 2024-01-01T00:00:00Z
-MAX_DRIFT_MS: Final = 60_000
-"""Versions more than this far ahead of the local clock are not adopted."""
 _encode = msgspec.msgpack.Encoder().encode
-_reply = msgspec.msgpack.Decoder(KbReply).decode
+MAX_REPLY_BYTES: Final = 512 << 20
+"""A reply may carry a model (the service's ``max_model_bytes``, 256 MiB by default)."""
+_reply = SafeDecoder[KbReply](KbReply, max_bytes=MAX_REPLY_BYTES, what="knowledge reply").decode
 _NIL: Final = msgspec.Raw(b"\xc0")
 OWN_WRITES: Final = 1024
 """Own writes remembered for keys not replicated yet (read-your-own-writes)."""
@@ -75,7 +90,8 @@ SERVICE_NODE: Final = "knowledge"
 
 class KnowledgeError(RapError):
     """A knowledge operation failed; ``code`` is the service's error kind when it
-    answered (bad-request, conflict, not-found, too-large, integrity, unavailable)."""
+    answered (bad-request, conflict, not-found, too-large, integrity, unavailable), or
+    ``bad-reply`` for an answer that could not be decoded."""
 
     def __init__(self, message: str, code: str = "") -> None:
         super().__init__(message)
@@ -157,7 +173,11 @@ class KnowledgeClient:
         writer: str,
         timeout: float = 2.0,
         replica_policy: InboxPolicy | None = None,
+        max_value_bytes: int = MAX_VALUE_BYTES,
     ) -> None:
+        """``timeout``: seconds a read waits for a promised version, and each request to
+        the service. ``max_value_bytes``: the largest value a replica adopts (the
+        service's limit: records over it are refused here as they are there)."""
         keys.system_pattern(system)
         self.fabric = fabric
         self.system = system
@@ -166,6 +186,9 @@ class KnowledgeClient:
         self.clock = HybridClock(writer)
         self.sealer = Sealer(writer)
         self.opener = Opener()
+        self.max_value_bytes = max_value_bytes
+        self.rejections = Rejections(f"knowledge client {writer}", log)
+        """Write records refused by the replicas (bounds, bad envelopes, wrong keys)."""
         self._replicas: dict[str, _Replica] = {}
         self._kb_keys: dict[str, str] = {}
         self._own: dict[str, KbRecord] = {}
@@ -352,16 +375,17 @@ class KnowledgeClient:
 
     @staticmethod
     def _decode(rec: KbRecord, type: Any) -> Any:
+        """The value as ``type``; without a type as plain data nested at most
+        ``MAX_DEPTH`` levels (see :mod:`rap_schemas.limits`)."""
         try:
-            return (
-                msgspec.msgpack.decode(rec.value, type=type)
-                if type
-                else (msgspec.msgpack.decode(rec.value))
-            )
-        except msgspec.ValidationError as exc:
+            if type:
+                return msgspec.msgpack.decode(rec.value, type=type)
+            return check_depth(msgspec.msgpack.decode(rec.value), MAX_DEPTH, "the value")
+        except (*DECODE_ERRORS, DecodeRejected) as exc:
+            reason = exc.reason if isinstance(exc, DecodeRejected) else decode_failure(exc)
             raise KnowledgeTypeError(
                 f"knowledge key {rec.key!r} (version {rec.version}) does not hold a "
-                f"{getattr(type, '__name__', type)}: {exc}"
+                f"{getattr(type, '__name__', type) if type else 'plain value'}: {reason}"
             ) from None
 
     async def _replicate(self, key: str) -> _Replica:
@@ -395,19 +419,29 @@ class KnowledgeClient:
                 env = self.opener.open_typed(
                     key, sample.payload, self._decode_env, KbRecord.TYPE, sample.prepared
                 )
+                if env is None:
+                    continue  # a duplicate
+                rec: KbRecord = env.body
+                self._check(rec, rep.key)
             except RejectedSample as exc:
-                log.warning("replica of %r: rejected a write record: %s", rep.key, exc.reason)
-                continue
-            if env is None:
-                continue  # a duplicate
-            rec: KbRecord = env.body
-            if rec.key != rep.key:
-                log.warning("replica of %r: ignored a record for %r", rep.key, rec.key)
+                self.rejections.reject(key, exc.reason, source=exc.source, type=exc.type)
                 continue
             self.clock.observe(rec.version)
             rep.offer(rec)
             if self.opener.stats.missing > missing:  # a write went missing: catch up
                 await self._refresh_quietly(rep)
+
+    def _check(self, rec: KbRecord, key: str) -> None:
+        """The bounds the service applies (a replica must not adopt for good what the
+        service refused), and the key the record was sent for."""
+        if rec.key != key:
+            raise RejectedSample(f"a record for {rec.key!r} arrived on the stream of {key!r}")
+        try:
+            check_record(
+                rec, now_ms=time.time_ns() // 1_000_000, max_value_bytes=self.max_value_bytes
+            )
+        except RecordError as exc:
+            raise RejectedSample(str(exc)) from None
 
     async def _refresh_quietly(self, rep: _Replica) -> None:
         """A background catch-up: a failure is logged, the replica keeps following."""
@@ -424,6 +458,11 @@ class KnowledgeClient:
                 raise
             return  # no service: the replica follows the write stream alone
         if reply.record is not None:
+            try:
+                self._check(reply.record, rep.key)
+            except RejectedSample as exc:
+                self.rejections.reject(keys.kb(self.system, rep.key), f"service reply: {exc}")
+                return
             self.clock.observe(reply.record.version)
             rep.offer(reply.record)
 
@@ -539,7 +578,12 @@ class KnowledgeClient:
         first = replies[0]
         if not first.ok:
             raise KnowledgeError(first.payload.decode(errors="replace"), "unavailable")
-        reply = _reply(first.payload)
+        try:
+            reply = _reply(first.payload)
+        except DecodeRejected as exc:
+            raise KnowledgeError(
+                f"the knowledge service's reply is not valid: {exc}", "bad-reply"
+            ) from None
         if not reply.ok:
             raise KnowledgeError(reply.error, reply.code)
         return reply

@@ -215,7 +215,7 @@ class NodeRuntime:
         self.trace = trace
         self.clock: Clock = clock or SystemClock()
         self.sealer = Sealer(node.name, self.clock)
-        self.opener = Opener()
+        self.opener = Opener(self.clock)
         self.stats = NodeStats()
         # one consumer task per route: a node with one route is serialised already; with
         # several, a lock keeps one handler at a time (asyncio's: no loop turn uncontended)

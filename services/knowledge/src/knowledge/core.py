@@ -7,8 +7,9 @@ import time
 from dataclasses import dataclass
 
 from rap_schemas import MODELS_PREFIX, KbRecord, keys
+from rap_schemas.knowledge import RecordError
+from rap_schemas.knowledge import check_record as bounds
 from rap_sdk.keyexpr import KeyExprError, intersects, validate
-from rap_sdk.knowledge import EPOCH_MS
 
 from .config import HistoryRule
 from .errors import BadRequest, IntegrityError, TooLarge
@@ -20,7 +21,6 @@ __all__ = [
     "check_pattern",
     "check_record",
     "check_time",
-    "check_version",
     "sha256",
 ]
 
@@ -80,26 +80,6 @@ def check_pattern(pattern: str) -> str:
     return pattern
 
 
-MAX_DRIFT_MS = 60_000
-"""How far ahead of this service's clock a version's time may be. A version from the far
-future would win every later write and push every writer's clock past it."""
-
-
-def check_version(key: str, version: int) -> int:
-    if not 0 < version < 2**63:
-        raise BadRequest(
-            f"record for {key!r} has version {version}; versions are in "
-            "1 .. 2**63-1 (hybrid-logical-clock stamps)"
-        )
-    if version >> 20 > time.time_ns() // 1_000_000 - EPOCH_MS + MAX_DRIFT_MS:
-        raise BadRequest(
-            f"record for {key!r} has a version {version} more than "
-            f"{MAX_DRIFT_MS // 1000} s ahead of this service's clock; check "
-            "the writer's clock"
-        )
-    return version
-
-
 def check_time(name: str, value: int | None) -> int | None:
     if value is not None and not 0 <= value < 2**63:
         raise BadRequest(f"{name} must be UTC nanoseconds in 0 .. 2**63-1, got {value}")
@@ -107,14 +87,13 @@ def check_time(name: str, value: int | None) -> int | None:
 
 
 def check_record(rec: KbRecord, max_value_bytes: int) -> KbRecord:
+    """The key, then the bounds every replica applies too
+    (:func:`rap_schemas.knowledge.check_record`)."""
     check_key(rec.key)
-    check_version(rec.key, rec.version)
-    check_time("ts", rec.ts)
-    if len(rec.value) > max_value_bytes:
-        raise TooLarge(
-            f"value for {rec.key!r} is {len(rec.value)} bytes, over the limit of "
-            f"{max_value_bytes}; store large artefacts in the model store"
-        )
+    try:
+        bounds(rec, now_ms=time.time_ns() // 1_000_000, max_value_bytes=max_value_bytes)
+    except RecordError as exc:
+        raise (TooLarge if exc.code == "too-large" else BadRequest)(str(exc)) from None
     return rec
 
 

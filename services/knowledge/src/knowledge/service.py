@@ -36,11 +36,13 @@ from rap_schemas import (
     ModelPut,
     keys,
 )
+from rap_schemas.limits import DecodeRejected, SafeDecoder
 from rap_sdk import Fabric, InboxPolicy, Opener, QueryRequest, RapError, Reply, Sealer
 from rap_sdk.envelope import typed_decoder
 from rap_sdk.errors import LifecycleError, RejectedSample
 from rap_sdk.inbox import Overflow
 from rap_sdk.knowledge import SERVICE_NODE
+from rap_sdk.rejections import Rejections, Throttle
 
 from .config import KnowledgeConfig
 from .core import check_key, check_model, check_pattern, check_record, check_time, sha256
@@ -53,7 +55,6 @@ log = logging.getLogger(__name__)
 
 NODE = SERVICE_NODE
 _encode = msgspec.msgpack.Encoder().encode
-_request = msgspec.msgpack.Decoder(KbRequest).decode
 _STREAM = typed_decoder(KbRecord)
 PUT_RETRIES = 8
 
@@ -74,6 +75,12 @@ class KnowledgeService:
         self.stats = ServiceStats()
         self.sealer = Sealer(NODE)
         self.opener = Opener()
+        self.rejections = Rejections(NODE, log)
+        self._throttle = Throttle()
+        """Write records and requests refused, by reason (logged rate-limited)."""
+        self._request = SafeDecoder[KbRequest](
+            KbRequest, max_bytes=config.max_model_bytes + (1 << 20), what="knowledge request"
+        ).decode
         self._prefix = keys.kb(config.system, "x")[:-1]
         self._model_locks: dict[str, anyio.Lock] = {}
 
@@ -114,39 +121,43 @@ class KnowledgeService:
                     raise BadRequest(f"record for {rec.key!r} arrived on {sample.key!r}")
                 await self.store.apply(check_record(rec, self.config.max_value_bytes))
                 self.stats.stream_applied += 1
-            except (RejectedSample, BadRequest, TooLarge) as exc:
+            except RejectedSample as exc:
                 self.stats.stream_rejected += 1
-                log.warning(
-                    "write stream: rejected a record on %s: %s",
-                    sample.key,
-                    getattr(exc, "reason", exc),
-                )
+                self.rejections.reject(sample.key, exc.reason, source=exc.source, type=exc.type)
+            except (BadRequest, TooLarge) as exc:
+                self.stats.stream_rejected += 1
+                self.rejections.reject(sample.key, str(exc))
             except Exception as exc:  # the store failed: counted, logged, the stream goes on
                 self.stats.stream_failed += 1
-                log.error("write stream: could not store a record on %s: %s", sample.key, exc)
+                if self._throttle.hit("store"):
+                    log.error("write stream: could not store a record on %s: %s", sample.key, exc)
 
     # -- queries ---------------------------------------------------------------------------
 
     async def _answer(self, query: QueryRequest) -> Iterable[Reply]:
         self.stats.queries += 1
         try:  # the fabric bounds the whole query with its handler deadline
-            reply = await self._dispatch(_request(query.payload), query.key)
-        except msgspec.ValidationError as exc:
-            reply = self._error(BadRequest(f"invalid knowledge request: {exc}"))
-        except msgspec.DecodeError as exc:
-            reply = self._error(BadRequest(f"undecodable knowledge request: {exc}"))
+            reply = await self._dispatch(self._request(query.payload), query.key)
+        except DecodeRejected as exc:
+            self.rejections.reject(query.key, exc.reason)
+            reply = self._error(BadRequest(exc.reason), quiet=True)
         except (KnowledgeError, RapError) as exc:
             reply = self._error(exc)
         except Exception as exc:  # a store or a bug: an error reply, counted; serving goes on
-            log.exception("knowledge request failed")
+            if self._throttle.hit("internal"):
+                log.exception("knowledge request failed")
             reply = self._error(KnowledgeError(f"internal error: {type(exc).__name__}: {exc}"))
         key = query.key if "*" not in query.key else keys.kb(self.config.system, "_keys")
         return [Reply(key, _encode(reply))]
 
-    def _error(self, exc: Exception) -> KbReply:
+    def _error(self, exc: Exception, *, quiet: bool = False) -> KbReply:
         self.stats.query_errors += 1
         code = getattr(exc, "code", "error")
-        log.info("knowledge request failed (%s): %s", code, exc)
+        count = 0 if quiet else self._throttle.hit(code)
+        if count:
+            log.info(
+                "knowledge request failed (%s; %d such since the last line): %s", code, count, exc
+            )
         return KbReply(ok=False, code=code, error=str(exc))
 
     async def _dispatch(self, req: Any, query_key: str) -> KbReply:
