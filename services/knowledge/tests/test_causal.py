@@ -4,6 +4,7 @@ version than the event promised, even when the write reaches it after the event.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import AsyncIterator
 from contextlib import AsyncExitStack, asynccontextmanager
 from typing import Any
@@ -13,8 +14,10 @@ import pytest
 from knowledge.app import open_service
 from knowledge.config import KnowledgeConfig
 from rap_schemas import LaserScan, StageTrace, keys
+from rap_schemas.knowledge import EPOCH_MS
 from rap_sdk import Context, KnowledgeError, MemoryBus, MemoryFabric, Node, run_nodes
 from rap_sdk.envelope import Sealer
+from rap_sdk.knowledge import writer_tag
 from rap_sdk.testing import DelayedKnowledgeWrites
 
 pytestmark = pytest.mark.anyio
@@ -121,3 +124,77 @@ async def test_ctx_carries_writes_and_reads_are_traced() -> None:
                     assert e.type == StageTrace.TYPE
         assert {(a.node, a.op) for a in access} == {("monitor", "write"), ("analyse", "read")}
         assert {a.version for a in access} == {env.ctx["laser_scan"]}
+
+
+# -- promises that never come: the damage is bounded -------------------------------------
+
+
+def forged_version(tag_of: str, ahead_ms: int = 10_000) -> int:
+    """A plausible version of writer ``tag_of``, a little ahead of now (within the drift
+    the service and replicas accept), that nobody ever writes."""
+    return ((time.time_ns() // 1_000_000 - EPOCH_MS + ahead_ms) << 20) | writer_tag(tag_of)
+
+
+@asynccontextmanager
+async def promised(timeout: float) -> AsyncIterator[tuple[list[Any], list[str], Any, Any]]:
+    """monitor -> analyse (with a second, unrelated route), the service, on one bus."""
+    seen: list[Any] = []
+    other: list[str] = []
+    monitor, analyse = loop_nodes(seen)
+
+    @analyse.on_event("other")
+    async def unrelated(ctx: Context) -> None:
+        other.append("handled")
+
+    bus = MemoryBus()
+    async with AsyncExitStack() as stack:
+        kf = await stack.enter_async_context(MemoryFabric(bus=bus))
+        await stack.enter_async_context(open_service(KnowledgeConfig(system="t"), fabric=kf))
+        fabric = await stack.enter_async_context(MemoryFabric(bus=bus))
+        group = await stack.enter_async_context(run_nodes(fabric, [monitor, analyse], system="t"))
+        group["analyse"].knowledge.timeout = timeout
+        await feed(group["analyse"], range(1, 2), seen)  # analyse replicates laser_scan now
+        yield seen, other, group["analyse"], Sealer("forger")
+
+
+async def test_a_promise_from_a_writer_that_is_not_alive_is_not_waited_for() -> None:
+    async with promised(timeout=30.0) as (seen, _, rt, forger):
+        payload, _ = forger.seal_message(
+            keys.event("t", "new-data"), None, ctx={"laser_scan": forged_version("nobody")}
+        )
+        with anyio.fail_after(5):  # far below the 30 s read timeout
+            await rt.fabric.publish(keys.event("t", "new-data"), payload)
+            while len(seen) < 2:
+                await anyio.wait_all_tasks_blocked()
+        assert isinstance(seen[1], KnowledgeError)
+        assert "its writer is not alive" in str(seen[1])
+
+
+async def test_forged_promises_cost_one_deadline_and_hold_no_other_route() -> None:
+    """Ten events promising a version of an alive writer that never comes delayed a real
+    event by ten read deadlines (20 s); now the deadline counts from arrival, so the
+    ten queued behind each other cost one, and the node's other routes run meanwhile."""
+    timeout = 1.0
+    async with promised(timeout=timeout) as (seen, other, rt, forger):
+        key = keys.event("t", "new-data")
+        for _ in range(10):
+            payload, _ = forger.seal_message(
+                key, None, ctx={"laser_scan": forged_version("monitor")}
+            )
+            await rt.fabric.publish(key, payload)
+        payload, _ = forger.seal_message(keys.event("t", "other"), None)
+        await rt.fabric.publish(keys.event("t", "other"), payload)
+        with anyio.fail_after(timeout / 2):  # while the first forged event still waits
+            while not other:
+                await anyio.wait_all_tasks_blocked()
+        assert len(seen) == 1  # the forged events are still waiting
+        sealer = Sealer("robot")
+        scan_key = keys.data("t", "scan")
+        payload, _ = sealer.seal_message(scan_key, scan(2))
+        with anyio.fail_after(3 * timeout):
+            await rt.fabric.publish(scan_key, payload)
+            while 2 not in seen:
+                await anyio.wait_all_tasks_blocked()
+        errors = [s for s in seen if isinstance(s, KnowledgeError)]
+        assert len(errors) == 10
+        assert seen[-1] == 2

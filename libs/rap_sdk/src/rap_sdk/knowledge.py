@@ -71,6 +71,7 @@ __all__ = [
     "KnowledgeError",
     "KnowledgeTypeError",
     "Versioned",
+    "writer_tag",
 ]
 
 log = logging.getLogger(__name__)
@@ -102,13 +103,18 @@ class KnowledgeTypeError(KnowledgeError):
     """A stored value does not match the type it was read as (with the ``$.path``)."""
 
 
+def writer_tag(writer: str) -> int:
+    """The 8-bit tag a writer stamps into the low bits of its versions."""
+    return zlib.crc32(writer.encode()) & 0xFF
+
+
 class HybridClock:
     """Hybrid logical clock: ``(ms since 2024) << 20 | counter << 8 | writer tag``.
     Monotonic per writer, ahead of every version it has observed, and ordered across
     writers by time first."""
 
     def __init__(self, writer: str, now_ms: Callable[[], int] | None = None) -> None:
-        self.tag = zlib.crc32(writer.encode()) & 0xFF
+        self.tag = writer_tag(writer)
         self._now_ms = now_ms or (lambda: time.time_ns() // 1_000_000)
         self._last = 0
 
@@ -139,10 +145,11 @@ class Versioned(msgspec.Struct, frozen=True):
 
 
 class _Replica:
-    __slots__ = ("changed", "decoded", "key", "ready", "record", "sub")
+    __slots__ = ("changed", "decoded", "key", "ready", "record", "seen_tags", "sub")
 
-    def __init__(self, key: str) -> None:
+    def __init__(self, key: str, seen_tags: set[int]) -> None:
         self.key = key
+        self.seen_tags = seen_tags
         self.record: KbRecord | None = None
         self.decoded: dict[Any, Any] = {}
         self.changed = anyio.Event()
@@ -157,6 +164,7 @@ class _Replica:
     def offer(self, rec: KbRecord) -> bool:
         if rec.version <= self.version:
             return False
+        self.seen_tags.add(rec.version & 0xFF)
         self.record = rec
         self.decoded.clear()
         self.changed.set()
@@ -201,6 +209,15 @@ class KnowledgeClient:
         """Reads that had to wait for the version their trigger promised."""
         self.catch_ups = 0
         """Times every replica caught up because the knowledge service came back."""
+        self._alive: dict[str, int] = {}
+        """Alive node of the system -> its writer tag (from liveliness tokens)."""
+        self._alive_tags: dict[int, int] = {}
+        """Writer tag -> how many alive nodes have it."""
+        self._seen_tags: set[int] = set()
+        """Writer tags of records this client's replicas adopted (writers with a write
+        stream, whether or not they declare liveliness: scripts, tools)."""
+        self._gone_tags: set[int] = set()
+        """Tags whose every node's liveliness token went away."""
 
     async def __aenter__(self) -> KnowledgeClient:
         self._tg_cm = anyio.create_task_group()
@@ -209,20 +226,65 @@ class KnowledgeClient:
         return self
 
     async def _watch_service(self) -> None:
-        """When the knowledge service comes (back), every replica catches up from it:
-        writes it stored while this client could not hear the stream are not missed."""
-        with self.fabric.watch_liveliness(keys.alive(self.system, SERVICE_NODE)) as watch:
+        """Follows which nodes of the system are alive (a promised version from a writer
+        that is not alive is not waited for). When the knowledge service comes (back),
+        every replica catches up from it: writes it stored while this client could not
+        hear the stream are not missed."""
+        service = keys.alive(self.system, SERVICE_NODE)
+        with self.fabric.watch_liveliness(keys.pattern(self.system, keys.Kind.ALIVE, "*")) as watch:
             while True:
                 try:
                     change = await watch.get()
                 except LifecycleError:
                     return
-                if change.alive and self._replicas:
+                self._track_alive(change.key, change.alive)
+                if change.key == service and change.alive and self._replicas:
                     # the service appeared (first time or back): replicas made without
                     # it, or while it was away, catch up from it
                     self.catch_ups += 1
                     for rep in list(self._replicas.values()):
                         await self._refresh_quietly(rep)
+
+    def _track_alive(self, key: str, alive: bool) -> None:
+        name = key.rsplit("/", 1)[-1]
+        tags = self._alive_tags
+        if alive and name not in self._alive:
+            tag = self._alive[name] = writer_tag(name)
+            tags[tag] = tags.get(tag, 0) + 1
+            self._gone_tags.discard(tag)
+        elif not alive and name in self._alive:
+            tag = self._alive.pop(name)
+            tags[tag] -= 1
+            if not tags[tag]:
+                del tags[tag]
+                self._gone_tags.add(tag)
+
+    def writer_alive(self, version: int) -> bool:
+        """Whether the writer of ``version`` (by its tag) may still deliver it: this
+        client, a node of the system whose liveliness token is up, or a writer whose
+        records this client has adopted and whose token (if it had one) has not gone.
+        A version promised by any other writer may never come: reads do not wait."""
+        tag = version & 0xFF
+        if tag == self.clock.tag or tag in self._alive_tags:
+            return True
+        return tag in self._seen_tags and tag not in self._gone_tags
+
+    async def await_versions(self, promised: dict[str, int], deadline: float) -> None:
+        """Wait until each replicated key in ``promised`` has reached its version, or the
+        monotonic ``deadline``; never raises (the read that needs a version says so).
+        Versions of keys not replicated here, or of writers that are not alive, are not
+        waited for."""
+        for key, version in promised.items():
+            rep = self._replicas.get(key)
+            if rep is None or rep.version >= version or not self.writer_alive(version):
+                continue
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return
+            self.waits += 1
+            with anyio.move_on_after(left):
+                while rep.version < version:
+                    await rep.changed.wait()
 
     async def __aexit__(
         self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
@@ -321,8 +383,10 @@ class KnowledgeClient:
     ) -> Any:
         """The newest known value of ``key``, decoded as ``type`` (None: plain data).
 
-        ``min_version``: wait (within ``timeout``) until at least that version is known.
-        A missing or deleted key returns ``default`` or raises ``KnowledgeError``."""
+        ``min_version``: wait (within ``timeout``, default the client's) until at least
+        that version is known, then ask the service; a version whose writer is not
+        alive is not waited for. A missing or deleted key returns ``default``, a
+        version that does not come raises ``KnowledgeError``."""
         rec = await self.read_record(key, min_version=min_version, timeout=timeout)
         if rec is None or rec.deleted:
             if default is _MISSING:
@@ -356,19 +420,22 @@ class KnowledgeClient:
             await rep.ready.wait()
         if rep.version >= min_version:
             return rep.record
-        self.waits += 1
-        deadline = timeout if timeout is not None else self.timeout
-        with anyio.move_on_after(deadline):
-            while rep.version < min_version:
-                await rep.changed.wait()
+        alive = self.writer_alive(min_version)
+        deadline = max(0.0, timeout if timeout is not None else self.timeout) if alive else 0.0
+        if deadline > 0:
+            self.waits += 1
+            with anyio.move_on_after(deadline):
+                while rep.version < min_version:
+                    await rep.changed.wait()
         if rep.version < min_version:
             await self._refresh(rep, min_version)
         if rep.version < min_version:
+            waited = f"waiting {deadline:.3g} s" if alive else "no wait: its writer is not alive"
             raise KnowledgeError(
                 f"read of {key!r} needs version >= {min_version} (written before the event "
                 f"that triggered this read) but the newest known is {rep.version} after "
-                f"waiting {deadline} s and asking the service: is the writer's write "
-                "stream reaching this node?",
+                f"{waited} and asking the service: is the writer's write stream reaching "
+                "this node?",
                 "unavailable",
             )
         return rep.record
@@ -392,7 +459,7 @@ class KnowledgeClient:
         self._check_key(key)
         if self._tg is None:
             raise LifecycleError("KnowledgeClient is not open: use 'async with'")
-        rep = self._replicas[key] = _Replica(key)
+        rep = self._replicas[key] = _Replica(key, self._seen_tags)
         rep.sub = self.fabric.subscribe(
             keys.kb(self.system, key), self._policy, prepare=self._decode_env
         )

@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import signal
+import time
 from collections.abc import AsyncIterator, Callable, Sequence
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
@@ -60,12 +61,30 @@ class NodeStats:
 class Context:
     """What a handler gets: the triggering envelope and ways to act in its cycle."""
 
-    __slots__ = ("_kb", "_rt", "cycle", "envelope", "key", "message", "sent", "written")
+    __slots__ = (
+        "_kb",
+        "_rt",
+        "cycle",
+        "deadline",
+        "envelope",
+        "key",
+        "message",
+        "sent",
+        "written",
+    )
 
     def __init__(
-        self, rt: NodeRuntime, key: str, envelope: TypedEnvelope[Any], message: Any
+        self,
+        rt: NodeRuntime,
+        key: str,
+        envelope: TypedEnvelope[Any],
+        message: Any,
+        deadline: float = 0.0,
     ) -> None:
         self._rt = rt
+        self.deadline = deadline
+        """Monotonic time until which a read waits for a version the trigger promised:
+        the knowledge client's timeout counted from the trigger's arrival (0: none)."""
         self.key = key
         self.envelope = envelope
         self.message = message
@@ -135,9 +154,11 @@ class ContextKnowledge:
     """``ctx.kb``: the node's knowledge client, seen from one handler call.
 
     A read of a key named in the triggering envelope's ``ctx`` returns at least that
-    version (it waits within the client's deadline, else raises ``KnowledgeError``
-    naming key and versions). Writes are remembered and carried, with what the trigger
-    carried, in the ``ctx`` of what this handler emits. Each read and write is traced
+    version (it waits, at most until the client's timeout has passed since the trigger
+    arrived, then asks the service, else raises ``KnowledgeError`` naming key and
+    versions; a version whose writer is not alive is not waited for). Writes are
+    remembered and carried, with what the trigger carried, in the ``ctx`` of what this
+    handler emits. Each read and write is traced
     as a ``KnowledgeAccess`` record when someone subscribes to the node's trace key."""
 
     __slots__ = ("_ctx",)
@@ -159,6 +180,8 @@ class ContextKnowledge:
     ) -> Any:
         ctx = self._ctx
         kw = {} if default is _MISSING else {"default": default}
+        if timeout is None and ctx.deadline:
+            timeout = max(0.0, ctx.deadline - time.monotonic())
         value = await self.client.read(
             key, type, min_version=ctx.envelope.ctx.get(key, 0), timeout=timeout, **kw
         )
@@ -366,7 +389,16 @@ class NodeRuntime:
         except RejectedSample as exc:
             await self._reject(sample.key, exc.reason, exc.source, exc.type)
             return
-        ctx = Context(self, sample.key, env, env.body)
+        deadline = 0.0
+        kb = self._knowledge
+        if env.ctx and kb is not None:
+            # wait for promised versions here, outside the node's lock: a version that is
+            # late (or forged, and never comes) holds this route only, and only until the
+            # client's timeout has passed since the sample arrived, however many such
+            # samples are queued behind each other
+            deadline = (sample.arrived or time.monotonic()) + kb.timeout
+            await kb.await_versions(env.ctx, deadline)
+        ctx = Context(self, sample.key, env, env.body, deadline)
         if self._lock is None:
             await self._call(route, ctx)
         else:

@@ -7,6 +7,7 @@ import asyncio
 import contextlib
 import logging
 from collections.abc import AsyncIterator, Callable
+from time import monotonic
 from types import TracebackType
 from typing import Any, Generic, Self, TypeVar
 
@@ -83,7 +84,7 @@ class LocalSubscription(InboxStream[Sample]):
 
     def sample(self, key: str, payload: bytes, remote: bool) -> Sample:
         """A sample for this subscription, prepared in the calling thread."""
-        s = Sample(key, payload, remote)
+        s = Sample(key, payload, remote, arrived=monotonic())
         if self.prepare is not None:
             s.prepared = prepared(self.prepare, payload)
         return s

@@ -33,6 +33,10 @@ class Sample:
     prepared: Any = None
     """What the subscription's ``prepare`` function made of the payload, when it has
     run (on the transport thread, while the loop wakes up) and succeeded; else None."""
+    arrived: float = 0.0
+    """``time.monotonic()`` when the sample reached this process (0: unknown). Deadlines
+    of the handling (a causal read's wait) count from here, not from when a queued
+    sample's turn comes."""
 
 
 @dataclass(frozen=True, slots=True)

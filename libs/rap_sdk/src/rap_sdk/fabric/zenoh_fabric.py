@@ -24,6 +24,7 @@ import json
 import logging
 import socket
 from collections.abc import Callable, Iterator
+from time import monotonic
 from types import TracebackType
 from typing import Any, Literal
 
@@ -302,7 +303,7 @@ class ZenohFabric:
 
         def on_sample(s: zenoh.Sample) -> None:
             payload = s.payload.to_bytes()
-            sample = Sample(str(s.key_expr), payload, True)
+            sample = Sample(str(s.key_expr), payload, True, arrived=monotonic())
             push(deliver, sample)
             if prepare is not None:
                 # after the hand-off: this runs while the loop thread is still waking up
