@@ -2,8 +2,8 @@
 ``rpio.clientLibraries.rpclpy``) running the lidar-occlusion MAPLE-K chain.
 
 Runs with the peer's own interpreter (``bench/.rpio-venv``, see ``peer_venv.py``); it imports
-nothing from the RAP workspace. Adapted from the shared reference harness
-``/work/shared/bench/rpio_anchor/rpio_maplek.py``.
+nothing from the RAP workspace. It follows the RoboSAPIENS reference harness of the peer's
+own lidar-occlusion loop.
 
     bench/.rpio-venv/bin/python bench/loop/rpio_peer.py --variant redis|mqtt \
         --rates 5,20,100 --cycles N --warmup W --out FILE.json

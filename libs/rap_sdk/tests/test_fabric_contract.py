@@ -179,6 +179,53 @@ async def test_liveliness_ends_when_a_fabric_closes(kind: str) -> None:
         assert await get(watch) == LivelinessChange("rap/s/alive/n", False)
 
 
+async def test_alive_lists_the_tokens_up_now(pair: tuple[Any, Any]) -> None:
+    a, b = pair
+    watch = b.watch_liveliness("rap/s/alive/*")
+    tok = a.declare_token("rap/s/alive/x")
+    own = b.declare_token("rap/s/alive/y")
+    assert (await get(watch)).alive
+    assert (await get(watch)).alive  # both have reached b
+    assert await b.alive("rap/s/alive/*") == ["rap/s/alive/x", "rap/s/alive/y"]
+    assert await a.alive("rap/s/alive/x") == ["rap/s/alive/x"]
+    tok.undeclare()
+    assert not (await get(watch)).alive
+    assert await b.alive("rap/s/alive/*") == ["rap/s/alive/y"]
+    own.undeclare()
+    assert await b.alive("rap/other/alive/*") == []
+
+
+@pytest.mark.zenoh
+async def test_links_to_other_processes_are_counted_and_logged(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    port = free_port()
+    async with ZenohFabric(ZenohConfig(listen=[f"tcp/127.0.0.1:{port}"])) as a:
+        watch = a.watch_liveliness("rap/s/alive/*")
+        async with ZenohFabric(ZenohConfig(connect=[f"tcp/127.0.0.1:{port}"])) as b:
+            b.declare_token("rap/s/alive/b")
+            assert (await get(watch)).alive
+            assert a.stats.links_up == 1
+        assert not (await get(watch)).alive
+        with anyio.fail_after(5):
+            while a.stats.links_down < 1:
+                await wait_all_tasks_blocked()
+    assert "link to peer" in caplog.text
+    assert "lost" in caplog.text
+
+
+@pytest.mark.zenoh
+async def test_a_port_0_endpoint_becomes_the_port_it_listens_on() -> None:
+    async with ZenohFabric(ZenohConfig(listen=["tcp/127.0.0.1:0"])) as a:
+        (endpoint,) = a.endpoints
+        assert endpoint.startswith("tcp/127.0.0.1:")
+        assert int(endpoint.rsplit(":", 1)[1]) > 0
+        watch = a.watch_liveliness("rap/s/alive/*")
+        async with ZenohFabric(ZenohConfig(connect=[endpoint])) as b:  # it is reachable there
+            b.declare_token("rap/s/alive/b")
+            assert await get(watch) == LivelinessChange("rap/s/alive/b", True)
+
+
 async def test_per_sender_order_is_kept(pair: tuple[Any, Any]) -> None:
     a, b = pair
     n = 2000

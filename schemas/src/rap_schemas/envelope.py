@@ -1,4 +1,4 @@
-"""The envelope every sample on the fabric travels in (DESIGN.md section 3)."""
+"""The envelope every sample on the fabric travels in (docs/architecture.md, "Envelope")."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Key expressions of the RAP key space (DESIGN.md section 2).
+"""Key expressions of the RAP key space (docs/architecture.md, "Key space").
 
 Every key that crosses a service boundary is built here; code elsewhere never
 writes a key as a string literal.

@@ -1,4 +1,4 @@
-"""Knowledge on the fabric (DESIGN.md section 4).
+"""Knowledge on the fabric (docs/architecture.md, "Knowledge").
 
 Writes travel as :class:`KbRecord` envelopes on ``rap/<system>/kb/<key>`` (the write
 stream that replicas follow). Everything that needs an answer is a query on the same key

@@ -1,4 +1,4 @@
-"""Messages of the lidar-occlusion case (shared/reference/lidar-occlusion.md).
+"""Messages of the lidar-occlusion case (docs/lidar_occlusion.md).
 
 Angles are radians in the robot's base frame (x forward, counter-clockwise positive);
 the lidar mount offset, if any, is applied by the publisher and named in ``frame_id``.

@@ -14,8 +14,8 @@
         node: laptop
         config: {}
 
-This is the first slice of the system model of DESIGN.md section 7 (physical
-architecture, mapping, knowledge backend); it grows by adding defaulted fields only, so
+This is the first slice of RAP's system model (physical architecture, mapping,
+knowledge backend); it grows by adding defaulted fields only, so
 that every plan written today stays valid. Its JSON Schema is exported with the wire
 messages (``schemas/json/rap.DeploymentPlan.schema.json``).
 

@@ -469,7 +469,7 @@ def read_text_file(
         with p.open("rb") as f:
             data = f.read(max_bytes + 1)
     except IsADirectoryError:
-        raise error(f"{source}: is a directory; give the {what} file", source=source) from None
+        raise error(f"{source}: is a directory; give the path of a file", source=source) from None
     except OSError as exc:
         reason = exc.strerror or str(exc)
         raise error(f"{source}: cannot read the {what}: {reason}", source=source) from None

@@ -1,4 +1,4 @@
-"""Sealing and opening envelopes (DESIGN.md section 3).
+"""Sealing and opening envelopes (docs/architecture.md, "Envelope").
 
 :class:`Sealer` stamps what a sender owes every message: a UUIDv7 ``uid``, ``ts``, a
 per-key ``seq``, and the ``cycle``/``cause``/``ctx`` it is given. :class:`Opener` decodes

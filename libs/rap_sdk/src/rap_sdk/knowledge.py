@@ -1,4 +1,4 @@
-"""The knowledge client (DESIGN.md section 4).
+"""The knowledge client (docs/architecture.md, "Knowledge").
 
     async with KnowledgeClient(fabric, system="tb4", writer="planner") as kb:
         v = await kb.write("planned_lidar_mask", mask)          # no round trip

@@ -37,7 +37,7 @@ from .errors import LifecycleError, RapError, RejectedSample
 from .fabric import Fabric, Sample, Subscription
 from .knowledge import _MISSING, KnowledgeClient
 from .node import Node, Route
-from .rejections import Rejections
+from .rejections import Rejections, Throttle
 
 __all__ = ["Context", "NodeGroup", "NodeRuntime", "NodeStats", "await_alive", "run_nodes"]
 
@@ -54,6 +54,8 @@ class NodeStats:
     failed: int = 0
     rejected: int = 0
     sent: int = 0
+    dropped: int = 0
+    """Samples the node's inboxes dropped because they were full (logged, rate-limited)."""
     records_lost: int = 0
     """Trace or rejection records that could not be published."""
 
@@ -245,6 +247,7 @@ class NodeRuntime:
         self._lock = asyncio.Lock() if len(node.routes) > 1 else None
         self._subs: list[Subscription] = []
         self.rejections = Rejections(node.name, log, clock=self.clock.time_ns)
+        self._drop_log = Throttle()
         self._trace_key = keys.trace(system, node.name)
         self._log_key = keys.log(system, node.name)
         self._stopping: anyio.Event | None = None
@@ -445,6 +448,12 @@ class NodeRuntime:
         if self._stop_requested:
             self._stopping.set()
         token = None
+        alive_key = keys.alive(self.system, self.node.name)
+        try:
+            await refuse_running(self.fabric, self.system, [self.node.name])
+        except LifecycleError:
+            self._state = "stopped"
+            raise
         try:
             async with (
                 KnowledgeClient(self.fabric, system=self.system, writer=self.node.name) as kb,
@@ -459,7 +468,7 @@ class NodeRuntime:
                     tg.start_soon(self._consume, route, sub)
                 # the token comes after the subscriptions: declarations on a link keep
                 # their order, so a peer that sees the token can already reach the node
-                token = self.fabric.declare_token(keys.alive(self.system, self.node.name))
+                token = self.fabric.declare_token(alive_key)
                 task_status.started()
                 await self._stopping.wait()
                 for sub in self._subs:  # stop() may have come before they existed
@@ -476,12 +485,39 @@ class NodeRuntime:
 
     async def _consume(self, route: Route, sub: Subscription) -> None:
         get, handle = sub.inbox.get, self.handle  # type: ignore[attr-defined]
+        stats = sub.stats
+        counted = 0
         while True:
             try:
                 sample = await get()
             except LifecycleError:  # closed and drained
+                self._dropped(route, stats.dropped - counted)
                 return
+            if stats.dropped != counted:
+                self._dropped(route, stats.dropped - counted)
+                counted = stats.dropped
             await handle(route, sample)
+
+    def _dropped(self, route: Route, n: int) -> None:
+        """Samples an inbox dropped: counted, and said (at most once a second a route)."""
+        if n <= 0:
+            return
+        self.stats.dropped += n
+        key = self.route_key(route)
+        count = self._drop_log.hit(key)
+        if count:
+            p = route.policy
+            log.warning(
+                "node %s dropped samples on %s (%d in all): its inbox (%s, capacity %d) was "
+                "full, the handler %s is slower than they arrive; raise the capacity "
+                "(policy=InboxPolicy(...)) or make the handler faster",
+                self.node.name,
+                key,
+                self.stats.dropped,
+                p.overflow.value,
+                p.capacity,
+                route.handler_name,
+            )
 
     def stop(self) -> None:
         """Stop taking new samples; queued ones are still handled, then ``run`` returns."""
@@ -490,6 +526,21 @@ class NodeRuntime:
             sub.close()
         if self._stopping is not None:
             self._stopping.set()
+
+
+async def refuse_running(fabric: Fabric, system: str, names: Sequence[str]) -> None:
+    """Raise :class:`LifecycleError` when a node of one of ``names`` is already alive in
+    ``system`` (a second one would handle every sample again)."""
+    up = {
+        keys.parse(k).name for k in await fabric.alive(keys.pattern(system, keys.Kind.ALIVE, "*"))
+    }
+    taken = [n for n in names if n in up]
+    if taken:
+        raise LifecycleError(
+            f"node {taken[0]!r} is already running in system {system!r} (its liveliness "
+            "token is up): a second one would handle every sample again; stop the other, "
+            "or give this one another name or system"
+        )
 
 
 class NodeGroup:
@@ -528,6 +579,7 @@ async def run_nodes(
     group = NodeGroup(
         [NodeRuntime(n, fabric, system=system, clock=clock, trace=trace) for n in nodes]
     )
+    await refuse_running(fabric, system, names)  # before the task group: a plain error
     async with anyio.create_task_group() as tg:
         for rt in group.runtimes:
             await tg.start(rt.run)

@@ -1,4 +1,4 @@
-"""The knowledge service: serves ``rap/<system>/kb/**`` (DESIGN.md section 4).
+"""The knowledge service: serves ``rap/<system>/kb/**`` (docs/architecture.md, "Knowledge").
 
 - Follows the write stream (``KbRecord`` envelopes on ``rap/<system>/kb/<key>``) and
   stores every record (non-durable writes).

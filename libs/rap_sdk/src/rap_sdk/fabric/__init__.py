@@ -2,6 +2,7 @@
 
 from ._types import (
     Fabric,
+    FabricStats,
     LivelinessChange,
     LivelinessWatch,
     Queryable,
@@ -17,6 +18,7 @@ from .zenoh_fabric import ZenohConfig, ZenohFabric, free_port
 
 __all__ = [
     "Fabric",
+    "FabricStats",
     "LivelinessChange",
     "LivelinessWatch",
     "MemoryBus",

@@ -11,6 +11,7 @@ from ..inbox import InboxPolicy, InboxStats
 
 __all__ = [
     "Fabric",
+    "FabricStats",
     "LivelinessChange",
     "LivelinessWatch",
     "Prepare",
@@ -53,6 +54,16 @@ class Reply:
     payload: bytes
     ok: bool = True
     """False for an error reply; ``payload`` then holds the UTF-8 reason."""
+
+
+@dataclass(slots=True)
+class FabricStats:
+    """What happened to the fabric's links to other processes (ZenohFabric)."""
+
+    links_up: int = 0
+    links_down: int = 0
+    reconnects: int = 0
+    """Links that came up to a peer this fabric had been linked to before."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -155,3 +166,7 @@ class Fabric(Protocol):
     def declare_token(self, key: str) -> Token: ...
 
     def watch_liveliness(self, key_expr: str, *, capacity: int = 256) -> LivelinessWatch: ...
+
+    async def alive(self, key_expr: str, *, timeout: float = 2.0) -> list[str]:
+        """The keys of the liveliness tokens matching ``key_expr`` that are up now (here
+        and elsewhere), sorted."""

@@ -246,6 +246,11 @@ class MemoryFabric:
         self.bus.token_changed(key, +1)
         return tok
 
+    async def alive(self, key_expr: str, *, timeout: float = 2.0) -> list[str]:
+        self._life.check_open()
+        validate(key_expr)
+        return sorted(k for k in self.bus.tokens if intersects(key_expr, k))
+
     def watch_liveliness(
         self,
         key_expr: str,

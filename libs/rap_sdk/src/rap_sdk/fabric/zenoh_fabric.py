@@ -35,6 +35,7 @@ import zenoh
 from ..errors import FabricError, LifecycleError, QueryError
 from ..inbox import Inbox, InboxPolicy, Overflow
 from ..keyexpr import validate
+from ..rejections import Throttle
 from ._local import (
     DEFAULT_POLICY,
     InboxStream,
@@ -45,7 +46,15 @@ from ._local import (
     liveliness_stream,
     prepared,
 )
-from ._types import LivelinessChange, Prepare, QueryHandler, QueryRequest, Reply, Sample
+from ._types import (
+    FabricStats,
+    LivelinessChange,
+    Prepare,
+    QueryHandler,
+    QueryRequest,
+    Reply,
+    Sample,
+)
 from .handoff import LoopHandoff
 
 __all__ = ["ZenohConfig", "ZenohFabric"]
@@ -161,6 +170,14 @@ class ZenohFabric:
         self._handles: set[_Handle] = set()
         self._watches: list[InboxStream[LivelinessChange]] = []
         self._id = ""
+        self.stats = FabricStats()
+        self.endpoints: list[str] = []
+        """The endpoints this fabric listens on once open (a port 0 made concrete)."""
+        self._linked: set[str] = set()
+        """Peers (zenoh ids) linked now."""
+        self._ever: set[str] = set()
+        self._link_log = Throttle()
+        self._transports: Any = None
         cc = zenoh.CongestionControl
         self._cc = cc.BLOCK if self.config.congestion_control == "block" else cc.DROP
 
@@ -182,8 +199,10 @@ class ZenohFabric:
         return self._handoff.push
 
     async def __aenter__(self) -> ZenohFabric:
+        self.endpoints = [_concrete(e) for e in self.config.listen]
+        config = msgspec.structs.replace(self.config, listen=self.endpoints)
         try:
-            zconf = zenoh.Config.from_json5(self.config.to_json5())
+            zconf = zenoh.Config.from_json5(config.to_json5())
         except zenoh.ZError as exc:
             raise FabricError(f"invalid Zenoh configuration: {exc}") from None
         try:
@@ -202,13 +221,55 @@ class ZenohFabric:
         self._session = session
         self._id = str(session.info.zid())
         self._handoff = LoopHandoff(asyncio.get_running_loop())
+        push = self._handoff.push
+        put = zenoh.SampleKind.PUT
+
+        def on_transport(event: Any) -> None:
+            push(self._link_changed, (str(event.transport.zid), event.kind == put))
+
+        self._transports = session.info.declare_transport_events_listener(
+            self._callback(on_transport), history=True
+        )
         return self
+
+    def _link_changed(self, change: tuple[str, bool]) -> None:
+        """A link to another Zenoh session came up or went down: counted and logged
+        (rate-limited per peer), so that a partition leaves a trace in every process."""
+        zid, up = change
+        st = self.stats
+        if up:
+            if zid in self._linked:
+                return
+            self._linked.add(zid)
+            st.links_up += 1
+            again = zid in self._ever
+            self._ever.add(zid)
+            if again:
+                st.reconnects += 1
+                if self._link_log.hit(zid):
+                    log.warning("fabric: link to peer %s is back (reconnected)", zid[:8])
+            return
+        if zid not in self._linked:
+            return
+        self._linked.discard(zid)
+        st.links_down += 1
+        if self._link_log.hit(zid):
+            log.warning(
+                "fabric: link to peer %s lost (%d peer(s) still linked); Zenoh keeps "
+                "trying to reconnect",
+                zid[:8],
+                len(self._linked),
+            )
 
     async def __aexit__(
         self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
     ) -> None:
         if not self._life.is_open:
             return
+        if self._transports is not None:
+            with contextlib.suppress(zenoh.ZError):
+                self._transports.undeclare()
+            self._transports = None
         for h in list(self._handles):
             h.undeclare()
         self._router.close_all()
@@ -483,6 +544,34 @@ class ZenohFabric:
             tok = self.session.liveliness().declare_token(key)
         return _Handle(key, tok, self._handles)
 
+    async def alive(self, key_expr: str, *, timeout: float = 2.0) -> list[str]:
+        self._life.check_open()
+        validate(key_expr)
+        done: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        found: set[str] = set()
+        push = self._push
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is not None:
+                found.add(str(reply.ok.key_expr))
+
+        def finish(_: object) -> None:
+            if not done.done():
+                done.set_result(None)
+
+        with _zenoh_errors(f"asking which tokens match {key_expr!r}"):
+            self.session.liveliness().get(
+                key_expr, self._callback(on_reply, lambda: push(finish, None)), timeout=timeout
+            )
+        try:
+            async with asyncio.timeout(timeout + 1.0):
+                await done
+        except TimeoutError:
+            raise QueryError(
+                f"liveliness query {key_expr!r} got no complete answer within {timeout} s"
+            ) from None
+        return sorted(found)
+
     def watch_liveliness(
         self,
         key_expr: str,
@@ -518,9 +607,21 @@ class ZenohFabric:
         return stream
 
 
-def free_port() -> int:
-    """A free TCP port on loopback, for a listen endpoint (``tcp/127.0.0.1:<port>``)."""
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
+def _concrete(endpoint: str) -> str:
+    """``tcp/<host>:0`` (any free port) with a free port chosen now, so that the
+    fabric knows, and can log, where it really listens."""
+    proto, sep, rest = endpoint.partition("/")
+    host, colon, port = rest.rpartition(":")
+    if not sep or not colon or port != "0" or proto not in ("tcp", "udp", "quic", "tls"):
+        return endpoint
+    return f"{proto}/{host}:{free_port(host.strip('[]') or '127.0.0.1')}"
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A free TCP port on ``host`` (loopback by default), for a listen endpoint
+    (``tcp/127.0.0.1:<port>``)."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family) as sock:
+        sock.bind((host, 0))
         port: int = sock.getsockname()[1]
         return port

@@ -1,0 +1,121 @@
+"""What an operator needs to hear about: inbox drops, a node name used twice, nodes that
+go away and come back, a process alone on its system or without a knowledge service."""
+
+from __future__ import annotations
+
+import logging
+
+import anyio
+import pytest
+from rap_schemas import keys
+from rap_sdk import (
+    Context,
+    InboxPolicy,
+    LifecycleError,
+    MemoryBus,
+    MemoryFabric,
+    Node,
+    Overflow,
+    run_nodes,
+)
+from rap_sdk.peers import PeerWatch
+from rap_sdk.testing import Harness
+
+pytestmark = pytest.mark.anyio
+
+
+async def test_inbox_drops_are_counted_and_logged(caplog: pytest.LogCaptureFixture) -> None:
+    node = Node("slow")
+    gate = anyio.Event()
+    handled = 0
+
+    @node.on_event("tick", policy=InboxPolicy(capacity=2, overflow=Overflow.LATEST))
+    async def tick(ctx: Context) -> None:
+        nonlocal handled
+        await gate.wait()
+        handled += 1
+
+    async with Harness(system="t") as h:
+        group = await h.start(node)
+        for _ in range(20):
+            await h.emit("tick")
+        gate.set()
+        await h.emit("tick")
+        stats = group["slow"].stats
+        with anyio.fail_after(5):
+            while handled + stats.dropped < 21:
+                await anyio.wait_all_tasks_blocked()
+        assert stats.dropped >= 15  # a capacity of 2 kept the newest: every sample counted
+    assert "dropped samples on rap/t/event/tick" in caplog.text
+    assert "raise the capacity" in caplog.text
+
+
+async def test_a_second_node_with_the_same_name_refuses_to_start() -> None:
+    bus = MemoryBus()
+    first, second = Node("monitor"), Node("monitor")
+    async with MemoryFabric(bus=bus) as a, MemoryFabric(bus=bus) as b:
+        async with run_nodes(a, [first], system="t"):
+            with pytest.raises(LifecycleError, match="'monitor' is already running"):
+                async with run_nodes(b, [second], system="t"):
+                    pass
+        async with run_nodes(b, [second], system="t"):  # once the first is gone, it may
+            pass
+
+
+@pytest.mark.zenoh
+async def test_a_second_node_with_the_same_name_refuses_to_start_over_zenoh() -> None:
+    first, second = Node("monitor"), Node("monitor")
+    async with Harness(system="t", fabric="zenoh", isolate=True) as h:
+        await h.start(first)
+        with pytest.raises(LifecycleError, match="already running"):
+            await h.start(second)
+
+
+async def test_nodes_that_go_and_come_back_are_logged(caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.WARNING)
+    bus = MemoryBus()
+    async with MemoryFabric(bus=bus) as mine, MemoryFabric(bus=bus) as other:
+        watch = PeerWatch(mine, system="t", mine={"me"}, alone_after=60)
+        async with anyio.create_task_group() as tg:
+            await tg.start(watch.run)
+            tok = other.declare_token(keys.alive("t", "analysis"))
+            await anyio.wait_all_tasks_blocked()
+            assert watch.stats.alive == {"analysis"}
+            tok.undeclare()
+            await anyio.wait_all_tasks_blocked()
+            tok = other.declare_token(keys.alive("t", "analysis"))
+            await anyio.wait_all_tasks_blocked()
+            tg.cancel_scope.cancel()
+    assert (watch.stats.lost, watch.stats.back) == (1, 1)
+    assert "node analysis lost its liveliness" in caplog.text
+    assert "node analysis is alive again" in caplog.text
+
+
+@pytest.mark.parametrize(
+    ("others", "expect_knowledge", "warning"),
+    [
+        ([], False, "no other node has been alive"),
+        (["planner"], True, "no knowledge service has been alive"),
+        (["planner", "knowledge"], True, None),
+    ],
+)
+async def test_a_process_alone_or_without_knowledge_is_warned(
+    others: list[str], expect_knowledge: bool, warning: str | None
+) -> None:
+    bus = MemoryBus()
+    async with MemoryFabric(bus=bus) as mine, MemoryFabric(bus=bus) as other:
+        for name in others:
+            other.declare_token(keys.alive("lonely", name))
+        watch = PeerWatch(
+            mine, system="lonely", expect_knowledge=expect_knowledge, alone_after=0.05
+        )
+        async with anyio.create_task_group() as tg:
+            await tg.start(watch.run)
+            await anyio.sleep(0.2)  # past alone_after: the check has run
+            tg.cancel_scope.cancel()
+    if warning is None:
+        assert watch.stats.warnings == []
+    else:
+        (said,) = watch.stats.warnings
+        assert warning in said
+        assert "'lonely'" in said
