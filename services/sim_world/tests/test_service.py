@@ -18,7 +18,9 @@ async def test_scans_go_out_and_plans_come_in(fabric: str) -> None:
     sim = Simulation(load_world(default_world_path("default")))
     truth: list[object] = []
     async with Harness(system="s", fabric=fabric) as h:  # type: ignore[arg-type]
-        service = SimService(sim, h.fabric, system="s", on_scan=lambda ev, env: truth.append(ev))
+        service = SimService(
+            sim, fabric=h.fabric, system="s", on_scan=lambda ev, env: truth.append(ev)
+        )
         async with anyio.create_task_group() as tg:
             await tg.start(service.run, 2.0)
             plan = SpinPlan(commands=[SpinCommand(omega=1.0, duration=1.0)], period=8.0)
@@ -37,7 +39,7 @@ async def test_scans_go_out_and_plans_come_in(fabric: str) -> None:
 async def test_a_bad_plan_is_refused_and_the_simulator_carries_on() -> None:
     sim = Simulation(load_world(default_world_path("default")))
     async with Harness(system="s") as h:
-        service = SimService(sim, h.fabric, system="s")
+        service = SimService(sim, fabric=h.fabric, system="s")
         async with anyio.create_task_group() as tg:
             await tg.start(service.run, 1.0)
             await h.publish_raw(keys.data("s", "tb1/spin_config"), b"\xc1")
@@ -53,7 +55,7 @@ async def test_a_bad_plan_is_refused_and_the_simulator_carries_on() -> None:
 async def test_real_time_runs_at_the_requested_speed() -> None:
     sim = Simulation(load_world(default_world_path("default")))
     async with Harness(system="s") as h:
-        service = SimService(sim, h.fabric, system="s", realtime_factor=10.0)
+        service = SimService(sim, fabric=h.fabric, system="s", realtime_factor=10.0)
         t0 = anyio.current_time()
         await service.run(2.0)
         elapsed = anyio.current_time() - t0

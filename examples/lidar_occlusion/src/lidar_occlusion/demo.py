@@ -64,7 +64,12 @@ async def run_demo(
                 names = ", ".join(n.name for n in loop_nodes)
                 _say(f"{len(loop_nodes)} MAPLE-K nodes alive: {names}", t0)
                 service = SimService(
-                    sim, fabric, system=system, on_scan=obs.on_scan, on_plan=obs.on_plan, rerun=viz
+                    sim,
+                    fabric=fabric,
+                    system=system,
+                    on_scan=obs.on_scan,
+                    on_plan=obs.on_plan,
+                    rerun=viz,
                 )
                 tracker = CycleTracker(Topology.of([*loop_nodes, service.node], system=system))
                 service.sync = tracker

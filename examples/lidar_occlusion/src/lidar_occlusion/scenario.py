@@ -262,7 +262,7 @@ async def run_in_process(
     loop_nodes = list(nodes) if nodes is not None else (build(robot).nodes if loop else [])
     async with anyio.create_task_group() as tg:
         service = SimService(
-            sim, fabric, system=system, on_scan=obs.on_scan, on_plan=obs.on_plan, rerun=rerun
+            sim, fabric=fabric, system=system, on_scan=obs.on_scan, on_plan=obs.on_plan, rerun=rerun
         )
         tracker = CycleTracker(Topology.of([*loop_nodes, service.node], system=system))
         service.sync = tracker

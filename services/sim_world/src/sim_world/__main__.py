@@ -1,8 +1,15 @@
-"""``python -m sim_world --world FILE [--lockstep] [--duration S] [--rerun out.rrd]``:
-the simulator on its own Zenoh session."""
+"""``python -m sim_world [--world NAME|FILE] [--lockstep | --speed X] [--duration S]
+[--rerun FILE.rrd]``: the simulator on its own Zenoh session.
+
+Prints READY once it serves its robots' topics and, when the run ends (its --duration
+is over, or SIGINT/SIGTERM), a summary: scans published and, per robot, collisions,
+waypoints reached and whether the route was completed. A mistake in an option or in the
+world file is one ``error:`` line and exit code 2.
+"""
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import signal
 from pathlib import Path
@@ -10,76 +17,118 @@ from typing import Annotated
 
 import anyio
 import typer
-from rap_sdk import ZenohConfig, ZenohFabric
+from rap_sdk import FabricError, ZenohConfig, ZenohFabric
+from rap_sdk.entry import check_endpoints, check_system, fail, run_cli, setup_logging
 
-from .service import SimService
-from .sim import Simulation
-from .viz import RerunLog
-from .world import WorldError, default_world_path, load_world
+from .config import SimConfig, SimConfigError
+from .service import RunSummary, open_service
+from .viz import RerunFileError
+from .world import WorldError, WorldSpec, find_world, load_world, shipped_worlds
+
+__all__ = ["cli", "main"]
+
+log = logging.getLogger(__name__)
 
 cli = typer.Typer(add_completion=False, help=__doc__)
 
 
 @cli.command()
 def main(
-    world: Annotated[Path | None, typer.Option(help="World YAML (default: shipped).")] = None,
+    world: Annotated[
+        str,
+        typer.Option(help=f"A shipped world ({', '.join(shipped_worlds())}) or a world file."),
+    ] = "default",
     system: Annotated[str, typer.Option(help="System name on the fabric.")] = "rap",
-    lockstep: Annotated[bool, typer.Option(help="As fast as possible (else real time).")] = False,
+    lockstep: Annotated[
+        bool, typer.Option("--lockstep", help="As fast as possible (else real time).")
+    ] = False,
     speed: Annotated[float, typer.Option(help="Real-time factor without --lockstep.")] = 1.0,
-    duration: Annotated[float | None, typer.Option(help="Sim seconds (default: forever).")] = None,
-    listen: Annotated[list[str] | None, typer.Option(help="Zenoh listen endpoint.")] = None,
-    connect: Annotated[list[str] | None, typer.Option(help="Zenoh endpoint to connect.")] = None,
-    rerun: Annotated[Path | None, typer.Option(help="Log to this .rrd file.")] = None,
-    log_level: Annotated[str, typer.Option(help="Logging level.")] = "INFO",
+    duration: Annotated[
+        float | None, typer.Option(help="Seconds of sim time (default: until stopped).")
+    ] = None,
+    listen: Annotated[
+        list[str] | None, typer.Option(help="Zenoh endpoint to listen on (repeatable).")
+    ] = None,
+    connect: Annotated[
+        list[str] | None, typer.Option(help="Zenoh endpoint to connect to (repeatable).")
+    ] = None,
+    rerun: Annotated[Path | None, typer.Option(help="Write a Rerun recording (.rrd).")] = None,
+    log_level: Annotated[str, typer.Option(help="DEBUG, INFO, WARNING or ERROR.")] = "INFO",
 ) -> None:
-    """Simulate the world and serve its robots' topics."""
-    logging.basicConfig(level=log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    """Simulate the world and serve its robots' topics. Prints READY once serving, and a
+    summary (scans published; per robot collisions and waypoints reached) at the end."""
+    setup_logging(log_level)
+    check_system(system)
+    listen_on = check_endpoints("--listen", listen) or ["tcp/127.0.0.1:0"]
+    connect_to = check_endpoints("--connect", connect)
     try:
-        spec = load_world(world or default_world_path())
-    except WorldError as exc:
-        raise typer.BadParameter(str(exc), param_hint="--world") from None
-    if not lockstep and speed <= 0:
-        raise typer.BadParameter(f"--speed must be > 0, got {speed}", param_hint="--speed")
-    zconf = ZenohConfig(listen=listen or ["tcp/127.0.0.1:0"], connect=connect or [])
-    viz = RerunLog(spec, path=str(rerun)) if rerun is not None else None
-    try:
-        anyio.run(
-            _serve, Simulation(spec), zconf, system, None if lockstep else speed, duration, viz
+        config = SimConfig(
+            world=world,
+            system=system,
+            lockstep=lockstep,
+            speed=speed,
+            duration=duration,
+            rerun=None if rerun is None else str(rerun),
         )
-    finally:
-        if viz is not None:
-            viz.close()
+    except SimConfigError as exc:
+        raise fail(f"--{exc.field.replace('_', '-')} {exc.value!r}: {exc.problem}") from None
+    if rerun is not None:
+        _check_recording_path(rerun)
+    try:
+        spec = load_world(find_world(world))
+    except WorldError as exc:
+        raise fail(str(exc)) from None
+    zconf = ZenohConfig(listen=listen_on, connect=connect_to)
+    try:
+        summary = anyio.run(_serve, config, spec, zconf)
+    except RerunFileError as exc:
+        raise fail(f"--rerun {exc}") from None
+    print(summary.render(), flush=True)
 
 
-async def _serve(
-    sim: Simulation,
-    zconf: ZenohConfig,
-    system: str,
-    factor: float | None,
-    duration: float | None,
-    viz: RerunLog | None,
-) -> None:
-    log = logging.getLogger("sim_world")
+def _check_recording_path(path: Path) -> None:
+    if path.is_dir():
+        raise fail(f"--rerun {path}: is a directory - give a file path, e.g. {path / 'sim.rrd'}")
+    if not path.parent.is_dir():
+        raise fail(
+            f"--rerun {path}: the directory {path.parent} does not exist - create it or "
+            "give a path in an existing directory"
+        )
+
+
+async def _serve(config: SimConfig, world: WorldSpec, zconf: ZenohConfig) -> RunSummary:
     with anyio.open_signal_receiver(signal.SIGTERM, signal.SIGINT) as signals:
-        async with ZenohFabric(zconf) as fabric, anyio.create_task_group() as tg:
-            service = SimService(sim, fabric, system=system, realtime_factor=factor, rerun=viz)
-
-            async def simulate() -> None:
-                await service.run(duration)
-                tg.cancel_scope.cancel()
-
-            tg.start_soon(simulate)
+        async with contextlib.AsyncExitStack() as stack:
+            try:
+                fabric = await stack.enter_async_context(ZenohFabric(zconf))
+            except FabricError as exc:
+                raise fail(
+                    f"{exc} - check --listen and --connect (is the port already in use?)"
+                ) from None
+            service = await stack.enter_async_context(
+                open_service(config, fabric=fabric, world=world)
+            )
             log.info(
-                "simulating %d robot(s), %s",
-                len(sim.robots),
-                "lockstep" if factor is None else f"real time x{factor}",
+                "simulating %d robot(s) of world %r, %s",
+                len(service.sim.robots),
+                config.world,
+                "lockstep" if config.lockstep else f"real time x{config.speed:g}",
             )
             print("READY", flush=True)
-            async for _ in signals:
-                log.info("stopping at sim time %.2f s", sim.t)
+            async with anyio.create_task_group() as tg:
+
+                async def stop_on_signal() -> None:
+                    async for signum in signals:
+                        log.info("signal %s: stopping at sim time %.2f s", signum, service.sim.t)
+                        break
+                    tg.cancel_scope.cancel()
+
+                tg.start_soon(stop_on_signal)
+                await service.finished.wait()
                 tg.cancel_scope.cancel()
-                break
+            summary = service.summary()
+    return summary
 
 
 if __name__ == "__main__":
-    cli()
+    run_cli(cli)

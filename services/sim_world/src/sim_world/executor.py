@@ -1,4 +1,4 @@
-"""The spin-plan executor (shared/reference/lidar-occlusion.md, "Robot semantics").
+"""The spin-plan executor (docs/lidar_occlusion.md).
 
 From the moment a plan arrives, at the start of every ``period`` seconds the robot runs
 the plan's commands in order (turning at ``omega`` rad/s, not moving forward, for

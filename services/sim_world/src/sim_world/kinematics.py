@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-__all__ = ["DiffDrive", "Pose2"]
+__all__ = ["DiffDrive", "Pose2", "wrap"]
 
 
 @dataclass(frozen=True, slots=True)

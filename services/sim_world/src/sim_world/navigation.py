@@ -14,12 +14,10 @@ import numpy as np
 import numpy.typing as npt
 
 from .kinematics import Pose2, wrap
-from .world import RobotSpec
+from .world import REACHED, RobotSpec
 
-__all__ = ["Navigator"]
+__all__ = ["CANDIDATES", "LOOKAHEAD", "MARGIN", "REACHED", "STOP", "Navigator"]
 
-REACHED = 0.25
-"""Metres from a waypoint that count as reaching it."""
 LOOKAHEAD = 0.9
 """Metres ahead a heading must be clear of obstacles to be taken."""
 MARGIN = 0.08

@@ -25,7 +25,7 @@ TWO_PI = 2 * math.pi
 
 def active_arcs(occ: Occlusion, index: int, t: float, seed: int) -> list[tuple[float, float]]:
     """The (start, width) arcs of one occlusion at time ``t`` (empty when inactive)."""
-    if not occ.t_start <= t < occ.t_end:
+    if t < occ.t_start or (occ.t_end is not None and t >= occ.t_end):
         return []
     if occ.mode == "sector":
         return [(occ.start_angle, occ.width)]

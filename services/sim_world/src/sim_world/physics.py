@@ -9,9 +9,10 @@ import pymunk
 
 from .world import Box, Circle, WorldSpec
 
-__all__ = ["pymunk_ray", "static_space"]
+__all__ = ["STATIC", "pymunk_ray", "static_space"]
 
 STATIC = 1
+"""The pymunk collision type of walls and obstacles."""
 
 
 def static_space(world: WorldSpec) -> pymunk.Space:

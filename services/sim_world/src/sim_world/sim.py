@@ -4,9 +4,9 @@ Each physics step (``physics_hz``) every robot's command is decided (a velocity
 override, else the spin-plan executor, else nominal navigation), set on its body, and
 pymunk moves the bodies and resolves contacts; each contact that begins between a
 robot and anything is a collision, counted. Every ``1 / rate_hz`` s each robot takes a
-lidar scan: the vectorised raycaster, then the occlusion mask (``inf``), then seeded
-Gaussian noise. Lockstep: time advances only by ``step``; same world and inputs, same
-output.
+lidar scan: the vectorised raycaster, seeded Gaussian noise, ``inf`` for what falls
+outside ``range_min..range_max``, then the occlusion mask (``inf``). Lockstep: time
+advances only by ``step``; same world and inputs, same output.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from .kinematics import DiffDrive, Pose2, wrap
 from .navigation import Navigator
 from .occlusion import occlusion_mask
 from .physics import STATIC, static_space
-from .world import RobotSpec, WorldSpec
+from .world import RobotSpec, WorldSpec, check_world
 
 __all__ = ["Robot", "ScanEvent", "Simulation"]
 
@@ -77,7 +77,9 @@ class ScanEvent:
 
 class Simulation:
     def __init__(self, world: WorldSpec) -> None:
-        self.world = world
+        """Raises :class:`~sim_world.world.WorldError` for an impossible world (a world
+        built in code gets the checks a world file gets)."""
+        self.world = check_world(world)
         self.t = 0.0
         self.dt = 1.0 / world.physics_hz
         self.space = static_space(world)
@@ -192,7 +194,8 @@ class Simulation:
         )
         if lidar.noise_std > 0:
             ranges = ranges + self.rng.normal(0.0, lidar.noise_std, ranges.shape)
-        ranges[ranges < lidar.range_min] = np.inf
+        # no return outside range_min..range_max (noise pushes some past either end)
+        ranges[(ranges < lidar.range_min) | (ranges > lidar.range_max)] = np.inf
         occluded = occlusion_mask(
             self.world.occlusions, name, self.t, self.beam_angles, self.world.seed
         )

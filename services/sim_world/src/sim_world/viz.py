@@ -22,10 +22,14 @@ from rap_schemas import SpinPlan
 from .sim import ScanEvent, Simulation
 from .world import Box, Circle, WorldSpec
 
-__all__ = ["RerunLog"]
+__all__ = ["RerunFileError", "RerunLog"]
 
 OCCLUDED_MARK = 0.35
 """Metres from the robot where an occluded beam is drawn."""
+
+
+class RerunFileError(ValueError):
+    """The recording file cannot be written; the message names it and says what to do."""
 
 
 class RerunLog:
@@ -42,7 +46,13 @@ class RerunLog:
         self.rr = rr
         self.rec = rr.RecordingStream(application_id, recording_id=f"{application_id}-{world.seed}")
         if path is not None:
-            self.rec.save(path)
+            try:
+                self.rec.save(path)
+            except RuntimeError as exc:  # rerun's own error for a file it cannot create
+                raise RerunFileError(
+                    f"{path}: cannot write the Rerun recording ({exc}) - give a file path "
+                    "in an existing, writable directory"
+                ) from None
         elif spawn:
             self.rec.spawn()
         self._paths: dict[str, list[tuple[float, float]]] = {}
