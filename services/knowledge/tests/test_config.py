@@ -3,9 +3,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-import typer
 from knowledge.__main__ import load_config
 from knowledge.config import HistoryRule
+from rap_sdk.entry import EntryError
 
 
 def test_a_yaml_config_sets_history_rules(tmp_path: Path) -> None:
@@ -31,6 +31,6 @@ def test_a_yaml_config_sets_history_rules(tmp_path: Path) -> None:
 def test_config_mistakes_name_the_file_and_field(tmp_path: Path, text: str, words: str) -> None:
     f = tmp_path / "kb.yaml"
     f.write_text(text)
-    with pytest.raises(typer.BadParameter, match=r"kb\.yaml") as exc:
+    with pytest.raises(EntryError, match=r"kb\.yaml:\d+:\d+: ") as exc:
         load_config(f)
     assert words in str(exc.value)

@@ -36,6 +36,7 @@ __all__ = [
     "check_system",
     "fail",
     "guard",
+    "leaf",
     "log_level",
     "run_cli",
     "setup_logging",
@@ -111,6 +112,14 @@ def guard(errors: tuple[type[Exception], ...], code: int = USAGE) -> Callable[[A
         return inner
 
     return wrap
+
+
+def leaf(exc: BaseException) -> BaseException:
+    """The one exception inside nested single-member exception groups (task groups wrap
+    a failure that ends them), else ``exc`` itself."""
+    while isinstance(exc, BaseExceptionGroup) and len(exc.exceptions) == 1:
+        exc = exc.exceptions[0]
+    return exc
 
 
 def _say(message: str) -> None:

@@ -85,6 +85,9 @@ _reply = SafeDecoder[KbReply](KbReply, max_bytes=MAX_REPLY_BYTES, what="knowledg
 _NIL: Final = msgspec.Raw(b"\xc0")
 OWN_WRITES: Final = 1024
 """Own writes remembered for keys not replicated yet (read-your-own-writes)."""
+DURABLE_BUDGET: Final = 0.75
+"""Share of the client's timeout the service may spend storing a durable write; the
+rest is for the answer's way back."""
 SERVICE_NODE: Final = "knowledge"
 """The node name the knowledge service declares its liveliness token under."""
 
@@ -329,7 +332,10 @@ class KnowledgeClient:
         """Durable (or compare-and-set, ``expect`` given): through the service and
         acknowledged; else out on the write stream."""
         if durable or expect is not None:
-            reply = await self._ask(rec.key, KbPut(record=rec, expect=expect))
+            # the service stores it within its budget or never, and answers before this
+            # client stops waiting: a write reported failed is never stored later
+            budget = max(1, int(self.timeout * DURABLE_BUDGET * 1000))
+            reply = await self._ask(rec.key, KbPut(record=rec, expect=expect, budget_ms=budget))
             if reply.version != rec.version:  # the service moved it past the current one
                 rec = msgspec.structs.replace(rec, version=reply.version)
             self.clock.observe(reply.version)

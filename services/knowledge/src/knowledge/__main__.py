@@ -1,4 +1,10 @@
-"""``python -m knowledge``: the knowledge service on its own Zenoh session."""
+"""``python -m knowledge``: the knowledge service on its own Zenoh session.
+
+Backends: ``memory`` (the default) keeps everything in this process and loses every
+write, acknowledged or not, when the service stops; ``sqlite`` (a file on this machine)
+and ``redis`` (shared, append-only recommended) keep acknowledged writes across
+restarts.
+"""
 
 from __future__ import annotations
 
@@ -9,26 +15,38 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import anyio
-import msgspec
 import typer
-from rap_sdk import ZenohConfig, ZenohFabric
+from rap_schemas.yamlconf import YamlError, load_yaml, read_text_file
+from rap_sdk import FabricError, ZenohConfig, ZenohFabric
+from rap_sdk.entry import check_endpoints, check_system, fail, leaf, run_cli, setup_logging
+from rap_sdk.peers import PeerWatch
 
 from .app import open_service
 from .config import HistoryRule, KnowledgeConfig
+from .errors import KnowledgeError
 
-cli = typer.Typer(add_completion=False, help=__doc__)
+cli = typer.Typer(add_completion=False, help=__doc__, rich_markup_mode=None)
 Backend = Literal["memory", "sqlite", "redis"]
+log = logging.getLogger("knowledge")
+
+MEMORY_WARNING = (
+    "knowledge backend 'memory': every write, acknowledged or not, is lost when this "
+    "service stops; use --backend sqlite or --backend redis to keep them"
+)
 
 
 @cli.command()
 def main(
     system: Annotated[str, typer.Option(help="System name: serves rap/<system>/kb/**.")] = "rap",
-    backend: Annotated[Backend, typer.Option(help="memory, sqlite or redis.")] = "memory",
+    backend: Annotated[
+        Backend,
+        typer.Option(help="memory (lost on restart), sqlite (a file) or redis (shared)."),
+    ] = "memory",
     sqlite_path: Annotated[str, typer.Option(help="SQLite file.")] = "knowledge.sqlite3",
     redis_url: Annotated[str, typer.Option(help="Redis URL.")] = "redis://127.0.0.1:6379/0",
     listen: Annotated[list[str] | None, typer.Option(help="Zenoh listen endpoint.")] = None,
     connect: Annotated[list[str] | None, typer.Option(help="Zenoh endpoint to connect.")] = None,
-    history_max: Annotated[int, typer.Option(help="Versions kept per key.")] = 1000,
+    history_max: Annotated[int, typer.Option(help="Versions kept per key (>= 1).")] = 1000,
     config_file: Annotated[
         Path | None,
         typer.Option("--config", help="YAML KnowledgeConfig; when given, it sets everything."),
@@ -36,10 +54,13 @@ def main(
     log_level: Annotated[str, typer.Option(help="Logging level.")] = "INFO",
 ) -> None:
     """Serve knowledge for one system until SIGTERM or SIGINT."""
-    logging.basicConfig(level=log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    setup_logging(log_level)
     if config_file is not None:
         config = load_config(config_file)
     else:
+        check_system(system)
+        if history_max < 1:
+            raise fail(f"--history-max {history_max}: keep at least 1 version per key")
         config = KnowledgeConfig(
             system=system,
             backend=backend,
@@ -48,37 +69,56 @@ def main(
             history=[HistoryRule(max_count=history_max)],
         )
     zconf = ZenohConfig(
-        listen=listen or ["tcp/127.0.0.1:0"],
-        connect=connect or [],
+        listen=check_endpoints("--listen", listen) or ["tcp/127.0.0.1:0"],
+        connect=check_endpoints("--connect", connect),
         query_handler_timeout=config.handler_timeout,
     )
+    if config.backend == "memory":
+        log.warning("%s", MEMORY_WARNING)
     # uvloop when present (as node processes run): a cheaper wake-up per write received
     use_uvloop = importlib.util.find_spec("uvloop") is not None
-    anyio.run(_serve, config, zconf, backend_options={"use_uvloop": use_uvloop})
+    try:
+        anyio.run(_serve, config, zconf, backend_options={"use_uvloop": use_uvloop})
+    except (KnowledgeError, FabricError, BaseExceptionGroup) as exc:
+        inner = leaf(exc)
+        if isinstance(inner, KnowledgeError):  # the store cannot be opened
+            raise fail(f"{inner} - check the {config.backend} backend's settings") from None
+        if isinstance(inner, FabricError):  # a listen endpoint that is taken, say
+            raise fail(f"{inner} - check --listen and --connect") from None
+        raise
 
 
 def load_config(path: Path) -> KnowledgeConfig:
-    """A KnowledgeConfig from YAML; a mistake is reported with the file and field."""
+    """A KnowledgeConfig from YAML; a mistake is reported with file:line:col."""
     try:
-        return msgspec.yaml.decode(path.read_bytes(), type=KnowledgeConfig)
-    except OSError as exc:
-        raise typer.BadParameter(f"cannot read {path}: {exc}") from None
-    except msgspec.ValidationError as exc:
-        raise typer.BadParameter(f"{path}: {exc}") from None
-    except msgspec.DecodeError as exc:
-        raise typer.BadParameter(f"{path}: not valid YAML: {exc}") from None
+        text = read_text_file(path, what="knowledge config")
+        config = load_yaml(text, KnowledgeConfig, str(path), what="knowledge config")
+    except YamlError as exc:
+        raise fail(str(exc)) from None
+    check_system(config.system, f"{path}: system")
+    return config
 
 
 async def _serve(config: KnowledgeConfig, zconf: ZenohConfig) -> None:
-    log = logging.getLogger("knowledge")
     with anyio.open_signal_receiver(signal.SIGTERM, signal.SIGINT) as signals:
-        async with ZenohFabric(zconf) as fabric, open_service(config, fabric=fabric):
-            log.info("ready: system %r, %s backend", config.system, config.backend)
+        async with (
+            ZenohFabric(zconf) as fabric,
+            open_service(config, fabric=fabric),
+            anyio.create_task_group() as tg,
+        ):
+            await tg.start(PeerWatch(fabric, system=config.system, mine={"knowledge"}).run)
+            log.info(
+                "ready: system %r, %s backend, listening on %s",
+                config.system,
+                config.backend,
+                ", ".join(fabric.endpoints),
+            )
             print("READY", flush=True)
             async for _ in signals:
                 log.info("stopping")
                 break
+            tg.cancel_scope.cancel()
 
 
 if __name__ == "__main__":
-    cli()
+    run_cli(cli)

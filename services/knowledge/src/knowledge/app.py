@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
@@ -28,7 +29,7 @@ async def open_store(config: KnowledgeConfig) -> AsyncIterator[Store]:
     elif config.backend == "sqlite":
         store = await SqliteStore(config.sqlite_path, retention).open()
     else:
-        store = await RedisStore(config.redis_url, config.system, retention).open()
+        store = await RedisStore(config.redis_url, config.system, retention).open(retry_for=2.0)
     try:
         yield store
     finally:
@@ -40,19 +41,16 @@ async def open_store(config: KnowledgeConfig) -> AsyncIterator[Store]:
 async def open_service(
     config: KnowledgeConfig, *, fabric: Fabric, store: Store | None = None
 ) -> AsyncIterator[KnowledgeService]:
-    """Run the service on ``fabric`` for the duration of the block (ready on entry)."""
-    async with anyio.create_task_group() as tg:
+    """Run the service on ``fabric`` for the duration of the block (ready on entry). A
+    store that cannot be opened raises its :class:`~knowledge.errors.KnowledgeError`
+    before anything runs."""
+    async with contextlib.AsyncExitStack() as stack:
         if store is None:
-            store = await tg.start(_hold_store, config)
-        service = KnowledgeService(config, fabric=fabric, store=store)
-        await tg.start(service.run)
-        try:
-            yield service
-        finally:
-            tg.cancel_scope.cancel()
-
-
-async def _hold_store(config: KnowledgeConfig, *, task_status: anyio.abc.TaskStatus[Store]) -> None:
-    async with open_store(config) as store:
-        task_status.started(store)
-        await anyio.sleep_forever()
+            store = await stack.enter_async_context(open_store(config))
+        async with anyio.create_task_group() as tg:
+            service = KnowledgeService(config, fabric=fabric, store=store)
+            await tg.start(service.run)
+            try:
+                yield service
+            finally:
+                tg.cancel_scope.cancel()

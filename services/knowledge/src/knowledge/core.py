@@ -12,10 +12,11 @@ from rap_schemas.knowledge import check_record as bounds
 from rap_sdk.keyexpr import KeyExprError, intersects, validate
 
 from .config import HistoryRule
-from .errors import BadRequest, IntegrityError, TooLarge
+from .errors import BadRequest, IntegrityError, StoreUnavailable, TooLarge
 
 __all__ = [
     "Retention",
+    "check_deadline",
     "check_key",
     "check_model",
     "check_pattern",
@@ -110,3 +111,12 @@ def check_model(name: str, data: bytes, digest: str, max_bytes: int) -> None:
         raise TooLarge(f"model {name!r} is {len(data)} bytes, over the limit of {max_bytes}")
     if sha256(data) != digest:
         raise IntegrityError(f"model {name!r}: the data does not match the sha256 sent with it")
+
+
+def check_deadline(key: str, deadline: float | None) -> None:
+    """Refuse to store a durable write whose budget has run out (nothing is stored)."""
+    if deadline is not None and time.monotonic() > deadline:
+        raise StoreUnavailable(
+            f"durable write of {key!r} not stored: its budget ran out before the store could "
+            "take it (the store is slow or was unreachable); retry it"
+        )

@@ -6,7 +6,8 @@ KnowledgeError            carries a machine-readable ``code`` for the reply
 ├── Conflict              compare-and-set saw another version (conflict)
 ├── NotFound              no such key, model or version (not-found)
 ├── IntegrityError        stored bytes do not match their sha256 (integrity)
-└── StoreUnavailable      the backend cannot be reached now (unavailable)
+├── StoreUnavailable      the backend cannot be reached now; nothing stored (unavailable)
+└── OutcomeUnknown        a durable write's outcome could not be learned (unknown)
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ __all__ = [
     "IntegrityError",
     "KnowledgeError",
     "NotFound",
+    "OutcomeUnknown",
     "StoreUnavailable",
     "TooLarge",
 ]
@@ -55,3 +57,10 @@ class IntegrityError(KnowledgeError):
 
 class StoreUnavailable(KnowledgeError):
     code = "unavailable"
+
+
+class OutcomeUnknown(KnowledgeError):
+    """A durable write may or may not have been stored: the backend failed mid-write and
+    could not be asked before the request's budget ran out."""
+
+    code = "unknown"

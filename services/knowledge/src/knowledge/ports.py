@@ -21,11 +21,16 @@ class Applied:
 
 
 class Store(Protocol):
-    async def apply(self, rec: KbRecord, *, expect: int | None = None) -> Applied:
+    async def apply(
+        self, rec: KbRecord, *, expect: int | None = None, deadline: float | None = None
+    ) -> Applied:
         """Store one version. The latest value is the highest version (last writer wins
         by version); every version joins the key's bounded history; re-applying the
         latest record is a no-op. ``expect``: only if the current version equals it (0:
-        the key does not exist), else :class:`~knowledge.errors.Conflict`."""
+        the key does not exist), else :class:`~knowledge.errors.Conflict`.
+        ``deadline`` (``time.monotonic()``): store by then or not at all; past it raise
+        :class:`~knowledge.errors.StoreUnavailable` (nothing stored), or
+        :class:`~knowledge.errors.OutcomeUnknown` when the store cannot tell."""
 
     async def get(self, key: str) -> KbRecord | None:
         """The latest record (a deletion included), or None."""

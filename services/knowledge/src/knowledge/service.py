@@ -46,7 +46,15 @@ from rap_sdk.rejections import Rejections, Throttle
 
 from .config import KnowledgeConfig
 from .core import check_key, check_model, check_pattern, check_record, check_time, sha256
-from .errors import BadRequest, Conflict, IntegrityError, KnowledgeError, NotFound, TooLarge
+from .errors import (
+    BadRequest,
+    Conflict,
+    IntegrityError,
+    KnowledgeError,
+    NotFound,
+    StoreUnavailable,
+    TooLarge,
+)
 from .ports import Store
 
 __all__ = ["KnowledgeService", "ServiceStats"]
@@ -137,7 +145,9 @@ class KnowledgeService:
     async def _answer(self, query: QueryRequest) -> Iterable[Reply]:
         self.stats.queries += 1
         try:  # the fabric bounds the whole query with its handler deadline
-            reply = await self._dispatch(self._request(query.payload), query.key)
+            reply = await self._dispatch(
+                self._request(query.payload), query.key, query.arrived or time.monotonic()
+            )
         except DecodeRejected as exc:
             self.rejections.reject(query.key, exc.reason)
             reply = self._error(BadRequest(exc.reason), quiet=True)
@@ -160,14 +170,20 @@ class KnowledgeService:
             )
         return KbReply(ok=False, code=code, error=str(exc))
 
-    async def _dispatch(self, req: Any, query_key: str) -> KbReply:
+    async def _dispatch(self, req: Any, query_key: str, arrived: float) -> KbReply:
         store = self.store
         key = getattr(req, "key", None) or getattr(getattr(req, "record", None), "key", None)
         if key is not None and query_key != self._prefix + check_key(key):
             raise BadRequest(f"request for {key!r} was sent to {query_key!r}")
+        if isinstance(req, (KbPut, KbDelete)) and req.budget_ms is not None:
+            if not 0 < req.budget_ms <= 3_600_000:
+                raise BadRequest(f"budget_ms must be 1 .. 3600000, got {req.budget_ms}")
+            deadline: float | None = arrived + req.budget_ms / 1000
+        else:
+            deadline = None
         if isinstance(req, KbPut):
             return await self._put(
-                check_record(req.record, self.config.max_value_bytes), req.expect
+                check_record(req.record, self.config.max_value_bytes), req.expect, deadline
             )
         if isinstance(req, KbDelete):
             rec = KbRecord(
@@ -178,7 +194,9 @@ class KnowledgeService:
                 value=msgspec.Raw(b"\xc0"),
                 deleted=True,
             )
-            return await self._put(check_record(rec, self.config.max_value_bytes), req.expect)
+            return await self._put(
+                check_record(rec, self.config.max_value_bytes), req.expect, deadline
+            )
         if isinstance(req, KbGet):
             latest = await store.get(check_key(req.key))
             return KbReply(record=latest, version=latest.version if latest else 0)
@@ -196,13 +214,15 @@ class KnowledgeService:
             return KbReply(keys=await store.keys(check_pattern(req.pattern)))
         return await self._models(req)
 
-    async def _put(self, rec: KbRecord, expect: int | None) -> KbReply:
+    async def _put(self, rec: KbRecord, expect: int | None, deadline: float | None) -> KbReply:
         """Store a durable write. The service orders durable writes: one that arrives at
         or below the key's current version is moved past it (keeping its own writer
         tag). If another write lands between reading the current version and storing,
-        it is retried, so the reply's version is always this write's, as the latest."""
+        it is retried, so the reply's version is always this write's, as the latest.
+        With a ``deadline`` (the request's budget) it is stored by then or not at all:
+        a writer that stopped waiting is never contradicted by a later store."""
         for _ in range(PUT_RETRIES):
-            current = await self.store.get(rec.key)
+            current = await self._current(rec.key, deadline)
             if current is not None and (current.version, current.writer) == (
                 rec.version,
                 rec.writer,
@@ -212,12 +232,25 @@ class KnowledgeService:
                 rec = msgspec.structs.replace(
                     rec, version=((current.version >> 8) + 1) << 8 | (rec.version & 0xFF)
                 )
-            applied = await self.store.apply(rec, expect=expect)
+            applied = await self.store.apply(rec, expect=expect, deadline=deadline)
             if applied.latest:
                 if not applied.duplicate:
                     await self._republish(rec)
                 return KbReply(version=rec.version)
         raise Conflict(rec.key, None, applied.version)
+
+    async def _current(self, key: str, deadline: float | None) -> KbRecord | None:
+        """The stored latest record of ``key``, read within the write's deadline."""
+        if deadline is None:
+            return await self.store.get(key)
+        try:
+            with anyio.fail_after(max(0.0, deadline - time.monotonic())):
+                return await self.store.get(key)
+        except TimeoutError:
+            raise StoreUnavailable(
+                f"durable write of {key!r} not stored: the store did not answer within the "
+                "write's budget; retry it"
+            ) from None
 
     async def _republish(self, rec: KbRecord) -> None:
         """Replicas in other processes follow the stream (the service's own

@@ -46,6 +46,8 @@ class QueryRequest:
     """The key expression of the query (may hold wildcards)."""
     parameters: str
     payload: bytes
+    arrived: float = 0.0
+    """``time.monotonic()`` when the query reached this process (0: unknown)."""
 
 
 @dataclass(frozen=True, slots=True)

@@ -9,6 +9,7 @@ immediate and in order, within the publishing call, so tests need no sleeps.
 from __future__ import annotations
 
 import itertools
+from time import monotonic
 from types import TracebackType
 
 import anyio
@@ -228,7 +229,9 @@ class MemoryFabric:
             with anyio.fail_after(timeout):
                 for q in targets:
                     replies += await answer(
-                        q.handler, QueryRequest(key, params, payload), self._handler_timeout
+                        q.handler,
+                        QueryRequest(key, params, payload, monotonic()),
+                        self._handler_timeout,
                     )
         except TimeoutError:
             raise QueryError(

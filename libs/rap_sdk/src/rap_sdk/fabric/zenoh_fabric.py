@@ -444,18 +444,18 @@ class ZenohFabric:
         tg = self._life.task_group
         push = self._push
         timeout = self.config.query_handler_timeout
-        inbox: Inbox[zenoh.Query] = Inbox(
+        inbox: Inbox[tuple[zenoh.Query, float]] = Inbox(
             InboxPolicy(capacity=self.config.query_backlog, overflow=Overflow.FIFO, block=False)
         )
 
         async def worker() -> None:
             while True:
                 try:
-                    query = await inbox.get()
+                    query, arrived = await inbox.get()
                 except LifecycleError:
                     return
                 payload = query.payload.to_bytes() if query.payload is not None else b""
-                request = QueryRequest(str(query.key_expr), str(query.parameters), payload)
+                request = QueryRequest(str(query.key_expr), str(query.parameters), payload, arrived)
                 try:
                     for r in await answer(handler, request, timeout):
                         if r.ok:
@@ -467,8 +467,9 @@ class ZenohFabric:
                 finally:
                     query.drop()
 
-        def accept(query: zenoh.Query) -> None:
-            if not self._life.is_open or not inbox.offer(query):
+        def accept(item: tuple[zenoh.Query, float]) -> None:
+            query = item[0]
+            if not self._life.is_open or not inbox.offer(item):
                 with contextlib.suppress(zenoh.ZError):
                     query.reply_err(
                         f"queryable {key_expr!r} is overloaded or closing "
@@ -477,7 +478,7 @@ class ZenohFabric:
                 query.drop()
 
         def on_query(query: zenoh.Query) -> None:
-            push(accept, query)
+            push(accept, (query, monotonic()))
 
         for _ in range(self.config.query_workers):
             tg.start_soon(worker)

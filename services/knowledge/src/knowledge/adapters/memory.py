@@ -8,7 +8,7 @@ import time
 from rap_schemas import KbRecord, ModelMeta
 from rap_sdk.keyexpr import intersects
 
-from ..core import Retention
+from ..core import Retention, check_deadline
 from ..errors import Conflict
 from ..ports import Applied
 
@@ -31,7 +31,10 @@ class MemoryStore:
         self._models: dict[str, dict[int, tuple[ModelMeta, bytes]]] = {}
         self._pins: dict[str, int] = {}
 
-    async def apply(self, rec: KbRecord, *, expect: int | None = None) -> Applied:
+    async def apply(
+        self, rec: KbRecord, *, expect: int | None = None, deadline: float | None = None
+    ) -> Applied:
+        check_deadline(rec.key, deadline)
         cur = self._latest.get(rec.key)
         cur_version = cur.version if cur is not None else 0
         if cur is not None and cur.version == rec.version and cur.writer == rec.writer:

@@ -25,8 +25,8 @@ from redis.exceptions import ConnectionError as RedisConnectionError
 from redis.exceptions import RedisError
 from redis.exceptions import TimeoutError as RedisTimeoutError
 
-from ..core import Retention
-from ..errors import Conflict, StoreUnavailable
+from ..core import Retention, check_deadline
+from ..errors import Conflict, OutcomeUnknown, StoreUnavailable
 from ..ports import Applied
 
 __all__ = ["RedisStore"]
@@ -34,6 +34,9 @@ __all__ = ["RedisStore"]
 log = logging.getLogger(__name__)
 
 _APPLY = """
+if KEYS[6] ~= nil and redis.call('GET', KEYS[6]) == 'fenced' then
+  return {-2, '0'}
+end
 local cur = redis.call('HGET', KEYS[1], ARGV[1])
 local cur_deleted = redis.call('HGET', KEYS[4], ARGV[1])
 if cur == false then cur = '00000000000000000000' end
@@ -60,6 +63,22 @@ if ARGV[2] > cur then
 end
 return {0, cur}
 """
+# a durable write marks its request id applied (in the same script, so atomically)
+_APPLY_DURABLE = _APPLY.replace(
+    "  return {1, ARGV[2]}\nend\nreturn {0, cur}",
+    "  redis.call('SET', KEYS[6], 'applied', 'EX', 3600)\n  return {1, ARGV[2]}\nend\n"
+    "redis.call('SET', KEYS[6], 'applied', 'EX', 3600)\nreturn {0, cur}",
+)
+_FENCE = """
+if redis.call('GET', KEYS[1]) == 'applied' then return 1 end
+redis.call('SET', KEYS[1], 'fenced', 'EX', 3600)
+return 0
+"""
+"""Settle a durable write whose attempt may or may not have run: Redis runs one script
+at a time, so either the write ran first (applied) or it will find the fence and store
+nothing."""
+FENCE_BUDGET = 0.3
+"""Seconds kept from a durable write's budget to settle an uncertain attempt."""
 
 _encode = msgspec.msgpack.Encoder().encode
 _record = msgspec.msgpack.Decoder(KbRecord).decode
@@ -85,44 +104,111 @@ class RedisStore:
             url, socket_connect_timeout=2.0, socket_timeout=5.0, health_check_interval=10
         )
         self._apply_script = self._client.register_script(_APPLY)
+        self._apply_durable = self._client.register_script(_APPLY_DURABLE)
+        self._fence_script = self._client.register_script(_FENCE)
 
-    async def open(self) -> RedisStore:
-        await self._call(self._client.ping)
+    async def open(self, *, retry_for: float | None = None) -> RedisStore:
+        """Check that Redis answers (trying for ``retry_for`` s, default the store's)."""
+        until = None if retry_for is None else time.monotonic() + retry_for
+        try:
+            await self._call(self._client.ping, until=until)
+        except StoreUnavailable:
+            await self._client.aclose()
+            raise
         return self
 
-    async def _call(self, fn: Callable[..., Awaitable[Any]], *args: Any, **kw: Any) -> Any:
+    async def _call(
+        self,
+        fn: Callable[..., Awaitable[Any]],
+        *args: Any,
+        until: float | None = None,
+        **kw: Any,
+    ) -> Any:
         """Run one command, retrying connection failures with exponential backoff for up
-        to ``retry_for`` seconds (a restarted server, a dropped link). Writes are safe to
-        repeat: re-applying the latest record is a no-op."""
-        delay, deadline = 0.02, anyio.current_time() + self._retry_for
+        to ``retry_for`` seconds, or until the monotonic time ``until`` (each attempt
+        then bounded by it too). Writes are safe to repeat: re-applying the latest record
+        is a no-op. Raises :class:`_Failed` (a ``StoreUnavailable``) saying whether a
+        failed attempt may have reached the server."""
+        delay = 0.02
+        deadline = time.monotonic() + self._retry_for if until is None else until
+        sent = False
         while True:
+            left = deadline - time.monotonic()
             try:
-                return await fn(*args, **kw)
-            except (RedisConnectionError, RedisTimeoutError) as exc:
-                if anyio.current_time() + delay > deadline:
-                    raise StoreUnavailable(
-                        f"redis store {self._url} unreachable for {self._retry_for} s: {exc}"
+                if until is None:
+                    return await fn(*args, **kw)
+                if left <= 0:
+                    raise TimeoutError
+                with anyio.fail_after(left):
+                    return await fn(*args, **kw)
+            except (RedisConnectionError, RedisTimeoutError, TimeoutError) as exc:
+                sent = sent or not _never_sent(exc)
+                if time.monotonic() + delay > deadline:
+                    raise _Failed(
+                        f"redis store {self._url} unreachable: {exc or 'no answer in time'}",
+                        sent=sent,
                     ) from None
                 log.info("redis store %s: %s; retrying in %.2f s", self._url, exc, delay)
                 await anyio.sleep(delay)  # backoff between reconnection attempts
                 delay = min(delay * 2, 1.0)
             except RedisError as exc:
-                raise StoreUnavailable(f"redis store {self._url}: {exc}") from None
+                raise _Failed(f"redis store {self._url}: {exc}", sent=True) from None
 
     async def aclose(self) -> None:
         await self._client.aclose()
 
     # -- records ---------------------------------------------------------------------------
 
-    async def apply(self, rec: KbRecord, *, expect: int | None = None) -> Applied:
+    async def apply(
+        self, rec: KbRecord, *, expect: int | None = None, deadline: float | None = None
+    ) -> Applied:
+        """See :class:`~knowledge.ports.Store`. With a ``deadline`` (a durable write) an
+        attempt that failed after it may have reached Redis is settled with a fence
+        before answering: applied (a success), fenced (it never will be: not stored), or,
+        when Redis cannot be asked either, :class:`OutcomeUnknown`."""
+        if deadline is None:
+            return await self._apply(rec, expect, None)
+        check_deadline(rec.key, deadline)
+        request = f"{self._p}req:{rec.key}@{rec.version}:{rec.writer}"
+        try:
+            return await self._apply(rec, expect, (request, deadline - FENCE_BUDGET))
+        except _Failed as exc:
+            if not exc.sent:
+                raise StoreUnavailable(f"{exc}; not stored") from None
+            first = str(exc)
+        try:
+            applied = await self._call(lambda: self._fence_script(keys=[request]), until=deadline)
+        except _Failed as exc:
+            raise OutcomeUnknown(
+                f"durable write of {rec.key!r} may or may not be stored: {first}, and Redis "
+                f"could not be asked in time ({exc}); read the key to see"
+            ) from None
+        if applied:
+            current = await self._call(self._client.hget, self._p + "ver", rec.key, until=None)
+            version = int(current) if current is not None else rec.version
+            return Applied(version, version == rec.version)
+        raise StoreUnavailable(f"{first}; not stored (and fenced: it never will be)")
+
+    async def _apply(
+        self, rec: KbRecord, expect: int | None, durable: tuple[str, float] | None
+    ) -> Applied:
         p = self._p
         limit = self._retention.limit(rec.key)
         minid = ""
         if limit.max_age_ns is not None:
             minid = str((time.time_ns() - limit.max_age_ns) // 1_000_000)
+        script = self._apply_script if durable is None else self._apply_durable
+        fence = [] if durable is None else [durable[0]]
         code, cur = await self._call(
-            lambda: self._apply_script(
-                keys=[p + "ver", p + "latest", p + "h:" + rec.key, p + "deleted", p + "writer"],
+            lambda: script(
+                keys=[
+                    p + "ver",
+                    p + "latest",
+                    p + "h:" + rec.key,
+                    p + "deleted",
+                    p + "writer",
+                    *fence,
+                ],
                 args=[
                     rec.key,
                     _v(rec.version),
@@ -133,9 +219,12 @@ class RedisStore:
                     rec.writer,
                     "1" if rec.deleted else "0",
                 ],
-            )
+            ),
+            until=None if durable is None else durable[1],
         )
         current = int(cur)
+        if code == -2:
+            raise StoreUnavailable(f"durable write of {rec.key!r} was fenced; not stored")
         if code == -1:
             raise Conflict(rec.key, expect, current)
         if code == 2:
@@ -204,3 +293,18 @@ class RedisStore:
     async def get_pin(self, name: str) -> int | None:
         raw = await self._call(self._client.hget, self._p + "pins", name)
         return int(raw) if raw is not None else None
+
+
+class _Failed(StoreUnavailable):
+    """A command failed; ``sent``: an attempt may have reached the server."""
+
+    def __init__(self, message: str, *, sent: bool) -> None:
+        super().__init__(message)
+        self.sent = sent
+
+
+def _never_sent(exc: BaseException) -> bool:
+    """The connection was refused: the command cannot have reached the server."""
+    return isinstance(exc.__context__, ConnectionRefusedError) or isinstance(
+        exc.__cause__, ConnectionRefusedError
+    )

@@ -18,7 +18,7 @@ import msgspec
 from rap_schemas import KbRecord, ModelMeta
 from rap_sdk.keyexpr import intersects
 
-from ..core import Retention
+from ..core import Retention, check_deadline
 from ..errors import Conflict, StoreUnavailable
 from ..ports import Applied
 
@@ -66,7 +66,7 @@ class SqliteStore:
             return await anyio.to_thread.run_sync(
                 functools.partial(fn, *args), limiter=self._limiter
             )
-        except sqlite3.OperationalError as exc:
+        except sqlite3.Error as exc:  # locked, unreadable, not a database, disk full
             raise StoreUnavailable(f"sqlite store {self._path!r}: {exc}") from None
 
     async def open(self) -> SqliteStore:
@@ -93,13 +93,16 @@ class SqliteStore:
 
     # -- records ---------------------------------------------------------------------------
 
-    async def apply(self, rec: KbRecord, *, expect: int | None = None) -> Applied:
-        return await self._run(self._apply, rec, expect)
+    async def apply(
+        self, rec: KbRecord, *, expect: int | None = None, deadline: float | None = None
+    ) -> Applied:
+        return await self._run(self._apply, rec, expect, deadline)
 
-    def _apply(self, rec: KbRecord, expect: int | None) -> Applied:
+    def _apply(self, rec: KbRecord, expect: int | None, deadline: float | None) -> Applied:
         db = self._db
         db.execute("BEGIN IMMEDIATE")
         try:
+            check_deadline(rec.key, deadline)  # under the write lock: stored in time or not
             cur = db.execute(
                 "SELECT version, writer, deleted FROM latest WHERE key = ?", (rec.key,)
             ).fetchone()
