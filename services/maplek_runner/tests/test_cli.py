@@ -133,3 +133,32 @@ async def test_the_runner_serves_its_share_over_zenoh_and_stops_on_sigterm(
     assert f"ready: listening on tcp/127.0.0.1:{port}" in out, out
     assert "received SIGTERM; stopping" in out, out
     assert "relay stopped: 1 received, 1 handled" in out, out
+
+
+@pytest.mark.zenoh
+async def test_a_second_runner_of_the_same_share_refuses_to_start(tmp_path: Path) -> None:
+    """Starting a runner twice doubled every command; now the second one says why and
+    exits 1."""
+    path = tmp_path / "plan.yaml"
+    path.write_text(PLAN, encoding="utf-8")
+    async with Harness(system="demo", fabric="zenoh", timeout=20) as h:
+        with h.fabric.watch_liveliness(keys.pattern("demo", keys.Kind.ALIVE)) as watch:
+            first = await anyio.open_process(
+                [sys.executable, "-m", "maplek_runner", str(path), "--node", "laptop"]
+                + ["--connect", h.endpoint, "--listen", f"tcp/127.0.0.1:{free_port()}"],
+                cwd=REPO,
+            )
+            try:
+                alive: set[str] = set()
+                with anyio.fail_after(20):
+                    while alive != {"echo", "relay"}:
+                        alive.add(keys.parse((await watch.get()).key).name)
+                second = await _runner(str(path), "--node", "laptop", "--connect", h.endpoint)
+            finally:
+                first.terminate()
+                await first.wait()
+                await first.aclose()
+    err = second.stderr.decode()
+    assert second.returncode == 1, err
+    assert "error: node 'echo' is already running in system 'demo'" in err, err
+    assert "Traceback" not in err

@@ -83,14 +83,18 @@ async def run_share(
         log.info("stopping %d component(s)", len(share.components))
     for rt in group.runtimes:
         s = rt.stats
-        log.info(
-            "%s stopped: %d received, %d handled, %d failed, %d rejected, %d sent",
+        trouble = s.failed or s.rejected or s.dropped or s.records_lost
+        (log.warning if trouble else log.info)(
+            "%s stopped: %d received, %d handled, %d failed, %d rejected, %d dropped by a "
+            "full inbox, %d sent, %d trace/log records lost",
             rt.node.name,
             s.received,
             s.handled,
             s.failed,
             s.rejected,
+            s.dropped,
             s.sent,
+            s.records_lost,
         )
 
 
