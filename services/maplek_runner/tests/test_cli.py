@@ -144,8 +144,10 @@ async def test_a_second_runner_of_the_same_share_refuses_to_start(tmp_path: Path
     async with Harness(system="demo", fabric="zenoh", timeout=20) as h:
         with h.fabric.watch_liveliness(keys.pattern("demo", keys.Kind.ALIVE)) as watch:
             first = await anyio.open_process(
-                [sys.executable, "-m", "maplek_runner", str(path), "--node", "laptop"]
-                + ["--connect", h.endpoint, "--listen", f"tcp/127.0.0.1:{free_port()}"],
+                [
+                    *(sys.executable, "-m", "maplek_runner", str(path), "--node", "laptop"),
+                    *("--connect", h.endpoint, "--listen", f"tcp/127.0.0.1:{free_port()}"),
+                ],
                 cwd=REPO,
             )
             try:
