@@ -5,6 +5,7 @@ tests that need one fabric use ``a`` only."""
 from __future__ import annotations
 
 import asyncio
+import logging
 import threading
 from collections.abc import AsyncIterator
 from contextlib import AsyncExitStack
@@ -199,6 +200,7 @@ async def test_alive_lists_the_tokens_up_now(pair: tuple[Any, Any]) -> None:
 async def test_links_to_other_processes_are_counted_and_logged(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
+    caplog.set_level(logging.INFO, logger="rap_sdk.fabric")
     port = free_port()
     async with ZenohFabric(ZenohConfig(listen=[f"tcp/127.0.0.1:{port}"])) as a:
         watch = a.watch_liveliness("rap/s/alive/*")

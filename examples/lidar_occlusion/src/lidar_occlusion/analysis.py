@@ -53,9 +53,12 @@ class AnalysisConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw
     """Beams with ``|angle| >`` this are behind the robot and ignored."""
     min_arc: float = math.pi / 48
     """An anomaly needs more than this arc (rad) of change against the planned mask."""
-    stuck_after: int = 25
-    """Scans after which an anomaly still marked as being handled is given up on (its
-    plan was lost or refused): the analysis may raise a new one."""
+    handling_timeout: float = 0.6
+    """Seconds of scan time after which an anomaly still marked as being handled is
+    given up on and may be raised again. A healthy cycle resolves it within one scan;
+    past the gate's plan age (0.2 s) its plan can no longer run, so it was lost: a stage
+    that died mid-cycle, or a plan sent to a stage that was not there. A restarted stage
+    therefore gets the next anomaly at most this long after the last one."""
 
 
 def signed_angles(angle_min: float, angle_increment: float, n: int) -> npt.NDArray[np.float64]:

@@ -23,6 +23,7 @@ deployment plans name.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -118,7 +119,9 @@ def build(
         await ctx.emit(NEW_DATA)
 
     # -- analyse ---------------------------------------------------------------------------
-    since_anomaly = [0]
+    raised_at: list[int | None] = [None]
+    """Scan stamp (ns) of the last anomaly raised here (None: none since this node
+    started, so an anomaly marked as handled before a restart is given up on at once)."""
 
     @ana.on_event(NEW_DATA)
     async def detect(ctx: Context) -> None:
@@ -129,19 +132,25 @@ def build(
         mask = analyse_scan(scan, loop.window, cfg)
         planned_msg = await ctx.kb.read(PLANNED_MASK, LidarMask, default=None)
         handling = await ctx.kb.read(HANDLING, bool, default=False)
-        since_anomaly[0] += 1
-        if handling and since_anomaly[0] > cfg.stuck_after:
+        since = raised_at[0]
+        waited = math.inf if since is None else (scan.stamp - since) / 1e9
+        lost = handling and waited > cfg.handling_timeout
+        if lost:
             log.warning(
-                "%s: anomaly still marked as handled after %d scans; raising anew",
+                "%s: no plan came of the anomaly raised %s (a stage died mid-cycle, or its "
+                "plan was lost); raising anew",
                 ana.name,
-                since_anomaly[0],
+                "before this node started" if since is None else f"{waited:.2f} s ago",
             )
             handling = False
-        planned = None if planned_msg is None else np.asarray(planned_msg.occluded, dtype=bool)
+        # the planned mask of a lost plan is not in force: judge against no plan at all
+        planned = (
+            None if planned_msg is None or lost else np.asarray(planned_msg.occluded, dtype=bool)
+        )
         msg = to_message(mask, scan)
         await ctx.kb.write(LIDAR_MASK, msg)
         if is_anomaly(mask, planned, scan.angle_increment, handling, cfg):
-            since_anomaly[0] = 0
+            raised_at[0] = scan.stamp
             await ctx.kb.write(HANDLING, True)
             await ctx.emit(ANOMALY, msg)
 

@@ -16,7 +16,7 @@ _ANGLES = -math.pi + np.arange(BEAMS) * _INC
 
 
 def occluded_scan(
-    start: float | None = None, width: float = 0.0, *, robot: str = "tb1"
+    start: float | None = None, width: float = 0.0, *, robot: str = "tb1", stamp: int = 0
 ) -> LaserScan:
     """Every beam returns 3 m, except those within ``width`` rad counter-clockwise of
     ``start`` (base frame), which return ``inf``; ``start=None``: nothing occluded."""
@@ -24,7 +24,7 @@ def occluded_scan(
     if start is not None:
         r[np.mod(_ANGLES - start, 2 * math.pi) < width] = np.inf
     return LaserScan(
-        stamp=0,
+        stamp=stamp,
         frame_id=f"{robot}/base_link",
         angle_min=-math.pi,
         angle_increment=_INC,

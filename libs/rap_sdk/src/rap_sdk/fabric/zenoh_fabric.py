@@ -247,14 +247,14 @@ class ZenohFabric:
             if again:
                 st.reconnects += 1
                 if self._link_log.hit(zid):
-                    log.warning("fabric: link to peer %s is back (reconnected)", zid[:8])
+                    log.info("fabric: link to peer %s is back (reconnected)", zid[:8])
             return
         if zid not in self._linked:
             return
         self._linked.discard(zid)
         st.links_down += 1
         if self._link_log.hit(zid):
-            log.warning(
+            log.info(  # a peer stopping does this too: PeerWatch says which node is gone
                 "fabric: link to peer %s lost (%d peer(s) still linked); Zenoh keeps "
                 "trying to reconnect",
                 zid[:8],
