@@ -1,0 +1,186 @@
+"""One Legitimate gate for any plan type: a tiny "return to dock" plan goes through
+propose -> legitimate -> execute with the freshness, future, replay, type and trust-veto
+checks, on MemoryFabric and on real Zenoh sessions (one per node)."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import pytest
+from rap_schemas import (
+    PLAN_REJECTED,
+    Message,
+    PlanProposal,
+    SpinPlan,
+    TrustOutput,
+    Verdict,
+    keys,
+)
+from rap_sdk import Context, HandlerError, Node, Sealer
+from rap_sdk.gate import ApprovalGate, TrustGuard, legitimate, propose
+from rap_sdk.testing import Harness
+
+pytestmark = pytest.mark.anyio
+
+S = "dock"
+
+
+class Dock(Message, frozen=True):
+    """Drive back to a charging station."""
+
+    TYPE = "app.Dock/1"
+
+    station: str
+    speed: float = 0.2
+
+
+class Battery(Message, frozen=True):
+    TYPE = "app.Battery/1"
+
+    level: float
+
+
+def build() -> tuple[list[Node], ApprovalGate, list[Dock]]:
+    planner = Node("planner", stage="plan")
+    judge = Node("legitimate", stage="legitimate")
+    executor = Node("executor", stage="execute")
+    guard = TrustGuard(streams={"safe"}, checkers={"trust_checker"})
+    gate = ApprovalGate(legitimators={"legitimate"}, max_age=5.0, guard=guard)
+    docked: list[Dock] = []
+
+    @planner.on_event("battery")
+    async def plan(ctx: Context, battery: Battery) -> None:
+        if battery.level < 0.2:
+            await propose(ctx, Dock(station="A", speed=0.1 if battery.level < 0.1 else 0.3))
+
+    @legitimate(judge)
+    async def check(ctx: Context, proposal: PlanProposal[Dock]) -> str | None:
+        return None if proposal.plan.speed <= 0.2 else "too fast with a weak battery"
+
+    @gate.on_approved(executor)
+    async def act(ctx: Context, proposal: PlanProposal[Dock]) -> None:
+        docked.append(proposal.plan)
+        await ctx.publish("base/cmd", proposal.plan)
+
+    return [planner, judge, executor], gate, docked
+
+
+SETUPS = [
+    pytest.param({"fabric": "memory"}, id="memory"),
+    pytest.param({"fabric": "zenoh", "isolate": True}, id="zenoh", marks=pytest.mark.zenoh),
+]
+
+
+def approval(plan: Message, *, created: int, uid: bytes) -> Verdict[Any]:
+    proposal = PlanProposal(
+        plan_uid=uid, plan_type=plan.TYPE, plan=plan, proposer="planner", created=created
+    )
+    return Verdict(
+        plan_uid=uid, approved=True, legitimator="legitimate", ts=created, proposal=proposal
+    )
+
+
+@pytest.mark.parametrize("setup", SETUPS)
+async def test_a_second_plan_type_goes_through_the_whole_gate(setup: dict[str, Any]) -> None:
+    nodes, gate, docked = build()
+    async with Harness(system=S, timeout=20, **setup) as h:
+        await h.start(*nodes)
+        # approved and executed: the executor gets a typed Dock
+        await h.emit("battery", Battery(level=0.05))
+        cmd = await h.expect_data("base/cmd")
+        assert cmd.decode(Dock) == Dock(station="A", speed=0.1)
+        assert docked == [Dock(station="A", speed=0.1)]
+        # rejected by the legitimate stage: plan-rejected names the reason
+        await h.emit("battery", Battery(level=0.15))
+        rejected = await h.expect_event(PLAN_REJECTED)
+        assert rejected.decode(Verdict).reason == "too fast with a weak battery"
+
+        as_legit = Sealer("legitimate")
+        key = keys.event(S, "verdict")
+        now = time.time_ns()
+        cases = [  # (verdict, the word in the refusal)
+            (approval(Dock(station="B"), created=now - 60 * 10**9, uid=b"s" * 16), "stale"),
+            (approval(Dock(station="F"), created=now + 3600 * 10**9, uid=b"f" * 16), "future"),
+            (approval(SpinPlan(commands=[]), created=now, uid=b"t" * 16), "app.Dock/1"),
+        ]
+        for verdict, word in cases:
+            n = len(h.of(keys.Kind.EVENT, PLAN_REJECTED))
+            payload, _ = as_legit.seal_message(key, verdict)
+            await h.publish_raw(key, payload)
+            await h.wait_for(lambda r, n=n: len(h.of(keys.Kind.EVENT, PLAN_REJECTED)) > n)
+            assert word in h.of(keys.Kind.EVENT, PLAN_REJECTED)[-1].decode(Verdict).reason
+        # a replay of the approval that ran: refused, nothing executed again
+        first = next(r for r in h.of(keys.Kind.EVENT, "verdict") if r.decode(Verdict).approved)
+        assert first.envelope is not None
+        replayed, _ = as_legit.seal(key, first.envelope.type, bytes(first.envelope.body))
+        await h.publish_raw(key, replayed)
+        await h.wait_for(lambda r: gate.stats.replayed == 1)
+        # the trust checker says the situation is unsafe: approved plans are vetoed
+        checker = Sealer("trust_checker")
+        tkey = keys.trust(S, "safe")
+        payload, _ = checker.seal_message(
+            tkey, TrustOutput(stream="safe", tick=1, ts=now, value=False)
+        )
+        await h.publish_raw(tkey, payload)
+        assert gate.guard is not None
+        await gate.guard.wait_verdicts(1, timeout=20)
+        n = len(h.of(keys.Kind.EVENT, PLAN_REJECTED))
+        await h.emit("battery", Battery(level=0.05))
+        await h.wait_for(lambda r: len(h.of(keys.Kind.EVENT, PLAN_REJECTED)) > n)
+        assert (
+            "trust guard 'safe' vetoes"
+            in h.of(keys.Kind.EVENT, PLAN_REJECTED)[-1].decode(Verdict).reason
+        )
+        st = gate.stats
+        assert (st.approved, st.stale, st.future, st.malformed, st.replayed, st.vetoed) == (
+            1,
+            1,
+            1,
+            1,
+            1,
+            1,
+        )
+        assert docked == [Dock(station="A", speed=0.1)]  # only the one approved plan ran
+
+
+async def test_a_legitimate_stage_answers_a_plan_of_another_type_with_a_rejection() -> None:
+    nodes, _, _ = build()
+    async with Harness(system=S) as h:
+        await h.start(*nodes)
+        now = time.time_ns()
+        spin = SpinPlan(commands=[])
+        proposal = PlanProposal(
+            plan_uid=b"x" * 16, plan_type=spin.TYPE, plan=spin, proposer="p", created=now
+        )
+        await h.emit("new-plan", proposal)
+        rejected = (await h.expect_event(PLAN_REJECTED)).decode(Verdict)
+        assert "rap.SpinPlan/1" in rejected.reason
+        assert "app.Dock/1" in rejected.reason
+
+
+def test_an_execute_stage_refuses_plans_outside_the_gate() -> None:
+    executor = Node("executor", stage="execute")
+    with pytest.raises(HandlerError, match=r"@gate\.on_approved\(node\)"):
+
+        @executor.on_event("new-plan")
+        async def sneaky(ctx: Context, proposal: PlanProposal[Dock]) -> None: ...
+
+    with pytest.raises(HandlerError, match="execute stage"):
+
+        @executor.on_event("verdict")
+        async def careless(ctx: Context) -> None: ...
+
+    plain = Node("logger")  # not an execute stage: it may watch plans
+
+    @plain.on_event("verdict", type=Verdict)
+    async def watch(ctx: Context) -> None: ...
+
+
+def test_the_plan_type_must_be_known() -> None:
+    node = Node("legitimate", stage="legitimate")
+    with pytest.raises(HandlerError, match=r"PlanProposal\[YourPlan\]"):
+
+        @legitimate(node)
+        async def check(ctx: Context, proposal: PlanProposal) -> str | None:  # type: ignore[type-arg]
+            return None
