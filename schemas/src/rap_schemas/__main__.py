@@ -7,6 +7,8 @@ from pathlib import Path
 
 from .export import write
 
+__all__ = ["main"]
+
 
 def main(argv: list[str]) -> int:
     if len(argv) != 2 or argv[0] != "export":

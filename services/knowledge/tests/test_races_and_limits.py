@@ -16,8 +16,9 @@ from knowledge.app import open_service
 from knowledge.config import HistoryRule, KnowledgeConfig
 from knowledge.core import Retention
 from rap_schemas import KbPut, KbRecord, KbReply, keys
+from rap_schemas.knowledge import EPOCH_MS
 from rap_sdk import MemoryBus, MemoryFabric, Sealer
-from rap_sdk.knowledge import EPOCH_MS, HybridClock, KnowledgeClient, KnowledgeError
+from rap_sdk.knowledge import HybridClock, KnowledgeClient, KnowledgeError
 
 from services.knowledge.tests.deployment import deployment
 

@@ -38,7 +38,12 @@ from .planning import LegitimacyConfig, PlanConfig, check_plan, plan_for
 
 __all__ = [
     "ANOMALY",
+    "DIRECTIONS",
+    "HANDLING",
+    "LASER_SCAN",
+    "LIDAR_MASK",
     "NEW_DATA",
+    "PLANNED_MASK",
     "ExecuteConfig",
     "Loop",
     "analyse",

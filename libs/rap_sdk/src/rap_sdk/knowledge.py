@@ -66,6 +66,10 @@ from .inbox import InboxPolicy, Overflow
 from .rejections import Rejections
 
 __all__ = [
+    "DURABLE_BUDGET",
+    "MAX_REPLY_BYTES",
+    "OWN_WRITES",
+    "SERVICE_NODE",
     "HybridClock",
     "KnowledgeClient",
     "KnowledgeError",

@@ -25,6 +25,8 @@ from .app import open_service
 from .config import HistoryRule, KnowledgeConfig
 from .errors import KnowledgeError
 
+__all__ = ["MEMORY_WARNING", "cli", "load_config", "main"]
+
 cli = typer.Typer(add_completion=False, help=__doc__, rich_markup_mode=None)
 Backend = Literal["memory", "sqlite", "redis"]
 log = logging.getLogger("knowledge")

@@ -22,6 +22,8 @@ from .errors import RunnerError
 from .loading import NodeShare, load_share
 from .runner import fabric_config, run_share
 
+__all__ = ["cli", "main"]
+
 cli = typer.Typer(add_completion=False, help=__doc__, rich_markup_mode=None)
 
 log = logging.getLogger("maplek_runner")

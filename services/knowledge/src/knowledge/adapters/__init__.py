@@ -1,0 +1,3 @@
+"""One store per backend: memory, sqlite, redis (see :mod:`knowledge.ports`)."""
+
+__all__: list[str] = []
