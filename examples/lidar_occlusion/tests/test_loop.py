@@ -6,6 +6,7 @@ import contextlib
 import itertools
 from collections.abc import AsyncIterator
 
+import msgspec
 import numpy as np
 import pytest
 from knowledge.app import open_service
@@ -168,3 +169,23 @@ async def test_a_stage_killed_mid_cycle_takes_the_next_cycle_after_its_restart(
         # the first scan whose anomaly could be raised again: 0.6 s after the lost one
         assert i == 5
         assert len(h.of(keys.Kind.EVENT, "anomaly")) == 2
+
+
+async def test_nan_and_negative_readings_are_rejected_at_the_boundary() -> None:
+    """A scan with NaN or -inf ranges is refused by the monitor's route (the schema), so
+    no stage acts on it; a good scan after it still closes the loop."""
+    loop = build("tb1")
+    good = scan(-0.4, 0.8)
+    async with running(loop) as h:
+        for bad in (float("nan"), float("-inf"), -1.0):
+            raw = msgspec.to_builtins(good)
+            raw["ranges"][10] = bad
+            payload, _ = h.sealer.seal(
+                keys.data("lo", "tb1/scan"), good.TYPE, msgspec.msgpack.encode(raw)
+            )
+            await h.publish_raw(keys.data("lo", "tb1/scan"), payload)
+        await h.wait_for(lambda r: len(h.rejections("monitor")) >= 1)
+        assert "$.ranges[10]" in h.rejections("monitor")[0].reason
+        assert not h.of(keys.Kind.EVENT, "new-data")
+        await h.publish("tb1/scan", good)
+        await h.expect_data("tb1/spin_config")

@@ -22,11 +22,12 @@ import typer
 from rap_schemas import PlanError, load_plan
 from rap_sdk import ZenohConfig, ZenohFabric
 from rap_sdk.cycles import CycleTracker, Topology
+from rap_sdk.entry import fail, run_cli, setup_logging
 from rap_sdk.fabric import free_port
 from sim_world.service import SimService
 from sim_world.sim import Simulation
 from sim_world.viz import RerunLog
-from sim_world.world import WorldError, WorldSpec, default_world_path, load_world
+from sim_world.world import WorldError, WorldSpec, default_world_path, find_world, load_world
 
 from .deploy import local_deployment, plan_nodes
 from .scenario import Observer, metrics
@@ -119,22 +120,25 @@ def main(
     out: Annotated[Path, typer.Option(help="Output directory.")] = Path("out/demo"),
     duration: Annotated[float, typer.Option(help="Seconds of sim time.")] = 60.0,
     plan: Annotated[Path | None, typer.Option(help="Deployment plan (default: shipped).")] = None,
-    world: Annotated[Path | None, typer.Option(help="World YAML (default: shipped).")] = None,
+    world: Annotated[
+        str | None, typer.Option(help="A shipped world's name or a world file (default: default).")
+    ] = None,
     rerun: Annotated[bool, typer.Option(help="Write <out>/demo.rrd.")] = True,
     log_level: Annotated[str, typer.Option(help="Logging level.")] = "WARNING",
 ) -> None:
     """Run the lidar-occlusion loop end to end and summarise it."""
-    logging.basicConfig(level=log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    if duration <= 0:
-        raise typer.BadParameter(f"must be > 0, got {duration}", param_hint="--duration")
+    setup_logging(log_level)
+    if not 0 < duration <= 86_400:
+        raise fail(f"--duration {duration}: give the seconds of sim time, 0 < s <= 86400")
     plan_path = plan or default_plan_path()
     try:
-        spec = load_world(world or default_world_path())
+        spec = load_world(find_world(world) if world else default_world_path())
         load_plan(plan_path)
+        out.mkdir(parents=True, exist_ok=True)
     except (WorldError, PlanError) as exc:
-        print(f"error: {exc}", flush=True)
-        raise typer.Exit(2) from None
-    out.mkdir(parents=True, exist_ok=True)
+        raise fail(str(exc)) from None
+    except OSError as exc:
+        raise fail(f"--out {out}: cannot create it: {exc.strerror or exc}") from None
     summary = anyio.run(run_demo, spec, plan_path, out, duration, rerun)
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(_report(summary, out), flush=True)
@@ -143,4 +147,4 @@ def main(
 
 
 if __name__ == "__main__":
-    cli()
+    run_cli(cli)

@@ -25,6 +25,7 @@ import anyio
 import msgspec
 import numpy as np
 import typer
+from rap_sdk.entry import run_cli
 from sim_world.occlusion import occlusion_mask
 from sim_world.world import WorldSpec
 
@@ -244,4 +245,4 @@ def main(
 
 
 if __name__ == "__main__":
-    cli()
+    run_cli(cli)
