@@ -28,8 +28,8 @@ async def test_with_slow_knowledge_writes_no_handler_reads_older_than_promised()
     async with Harness(system="sys") as h:
         await h.hold(open_service(KnowledgeConfig(system="sys"), fabric=h.fabric))
         async with anyio.create_task_group() as tg:
-            slow = DelayedKnowledgeWrites(h.fabric, tg, 0.03)
-            async with run_nodes(slow, loop.nodes, system="sys"):  # type: ignore[arg-type]
+            slow = DelayedKnowledgeWrites(fabric=h.fabric, tg=tg, delay=0.03)
+            async with run_nodes(loop.nodes, fabric=slow, system="sys"):  # type: ignore[arg-type]
                 await h.publish("tb1/scan", scan(-0.4, 0.8))
                 await h.expect_data("tb1/spin_config")
                 for i in range(6):  # clear again: the occlusion fades out of the window

@@ -41,7 +41,9 @@ async def stage_hop(
     samples: list[int] = []
     async with (
         fabric,
-        run_nodes(fabric, [Node("a", stage="monitor"), b], system=SYSTEM, trace=trace) as group,
+        run_nodes(
+            [Node("a", stage="monitor"), b], fabric=fabric, system=SYSTEM, trace=trace
+        ) as group,
     ):
         listener = None
         if trace_listener:

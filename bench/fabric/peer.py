@@ -51,7 +51,7 @@ async def sdk(role: str, addr: str, n: int, direct: bool) -> None:
                 finished.set()
 
     async with ZenohFabric(sdk_config(addr, direct=direct)) as fabric:
-        async with run_nodes(fabric, [node], system=SYSTEM):
+        async with run_nodes([node], fabric=fabric, system=SYSTEM):
             if role == "echo":  # the client listens for pongs before we say READY
                 await fabric.wait_matched(keys.data(SYSTEM, "pong"), timeout=30)
             ready()

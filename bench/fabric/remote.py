@@ -45,7 +45,7 @@ async def sdk_latency(size: int, iters: int, warm: int, *, direct: bool = True) 
     samples: list[int] = []
     loop = asyncio.get_running_loop()
     async with ZenohFabric(ZenohConfig(listen=[ep], direct_callbacks=direct)) as fabric:
-        async with run_nodes(fabric, [client], system=SYSTEM) as group:
+        async with run_nodes([client], fabric=fabric, system=SYSTEM) as group:
             transport = "sdk" if direct else "sdk-indirect"
             async with peer(transport, "echo", ep):
                 await fabric.wait_matched(keys.data(SYSTEM, "ping"), timeout=PEER_TIMEOUT)
@@ -84,7 +84,7 @@ async def fabric_latency(size: int, iters: int, warm: int) -> list[int]:
 async def sdk_throughput(size: int, n: int) -> dict[str, Any]:
     ep = f"tcp/127.0.0.1:{free_port()}"
     async with ZenohFabric(ZenohConfig(listen=[ep])) as fabric:
-        async with run_nodes(fabric, [Node("blaster")], system=SYSTEM) as group:
+        async with run_nodes([Node("blaster")], fabric=fabric, system=SYSTEM) as group:
             async with peer("sdk", "sink", ep, n) as p:
                 key = keys.data(SYSTEM, "blast")
                 await fabric.wait_matched(key, timeout=PEER_TIMEOUT)

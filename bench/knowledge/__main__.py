@@ -72,7 +72,9 @@ async def measure(quick: bool) -> dict[str, Any]:
             ]
         ):
             await fabric.wait_matched(keys.kb("bench", "_keys"), queryable=True, timeout=30)
-            async with KnowledgeClient(fabric, system="bench", writer="bench", timeout=10) as kb:
+            async with KnowledgeClient(
+                fabric=fabric, system="bench", writer="bench", timeout=10
+            ) as kb:
                 await kb.write("r", 42, durable=True)
                 await kb.read("r", int)  # replicate
                 step("replicated read")

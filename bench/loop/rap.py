@@ -118,7 +118,7 @@ async def run_rap(
         ZenohFabric(ZenohConfig(listen=[endpoint])) as fabric,
         local_deployment(PLANS[variant], fabric=fabric, endpoint=endpoint, logs=logs / variant),
     ):
-        rt = NodeRuntime(robot.node, fabric, system=SYSTEM, trace=False)
+        rt = NodeRuntime(robot.node, fabric=fabric, system=SYSTEM, trace=False)
         async with anyio.create_task_group() as tg:
             await tg.start(rt.run)
             await fabric.wait_matched(keys.data(SYSTEM, f"{ROBOT}/scan"), timeout=10.0)
@@ -136,10 +136,10 @@ async def run_inproc(rates: list[float], cycles: int, warmup: int) -> list[dict[
     async with (
         MemoryFabric() as fabric,
         open_service(KnowledgeConfig(system=SYSTEM), fabric=fabric),
-        run_nodes(fabric, nodes, system=SYSTEM),
+        run_nodes(nodes, fabric=fabric, system=SYSTEM),
         anyio.create_task_group() as tg,
     ):
-        rt = NodeRuntime(robot.node, fabric, system=SYSTEM, trace=False)
+        rt = NodeRuntime(robot.node, fabric=fabric, system=SYSTEM, trace=False)
         await tg.start(rt.run)
         await _round(rt, robot, 50.0, warmup)
         out = [await _round(rt, robot, rate, cycles) for rate in rates]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from functools import partial
+
 import anyio
 import pytest
 from rap_schemas import Empty, PlanProposal, SpinPlan, StageTrace, Verdict, keys
@@ -85,7 +87,7 @@ async def test_the_tracker_follows_a_real_loop_on_the_fabric() -> None:
         tracker = CycleTracker(Topology.of(nodes, system=S))
         await h.start(*nodes)
         async with anyio.create_task_group() as tg:
-            await tg.start(tracker.follow, h.fabric)
+            await tg.start(partial(tracker.follow, fabric=h.fabric))
             for _ in range(20):
                 env = await h.send(SCAN, None)
                 tracker.expect(env.uid, SCAN)

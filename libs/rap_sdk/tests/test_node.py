@@ -161,7 +161,7 @@ async def test_rejection_reasons_name_the_path_and_type() -> None:
     async def on_scan(ctx: Context, s: LaserScan) -> None:
         got.append(s)
 
-    async with MemoryFabric() as fabric, run_nodes(fabric, [node], system="t") as group:
+    async with MemoryFabric() as fabric, run_nodes([node], fabric=fabric, system="t") as group:
         rt = group["n"]
         log = fabric.subscribe(keys.log("t", "n"))
         rt.rejections = Rejections("n", logging.getLogger("test"), interval_ns=0)  # no limit
@@ -241,7 +241,7 @@ async def test_queued_samples_are_handled_on_graceful_stop() -> None:
         handled.append(s.stamp)
 
     async with MemoryFabric() as fabric:
-        async with run_nodes(fabric, [node], system="t"):
+        async with run_nodes([node], fabric=fabric, system="t"):
             sealer = Sealer("src")
             for i in range(5):
                 p, _ = sealer.seal(
@@ -254,7 +254,7 @@ async def test_queued_samples_are_handled_on_graceful_stop() -> None:
 async def test_liveliness_token_while_running() -> None:
     async with MemoryFabric() as fabric:
         watch = fabric.watch_liveliness(keys.pattern("t", keys.Kind.ALIVE))
-        async with run_nodes(fabric, [Node("a"), Node("b")], system="t"):
+        async with run_nodes([Node("a"), Node("b")], fabric=fabric, system="t"):
             assert {(await watch.get()).key for _ in range(2)} == {
                 keys.alive("t", "a"),
                 keys.alive("t", "b"),
@@ -365,7 +365,7 @@ async def test_stop_before_run_returns() -> None:
     async def e(ctx: Context) -> None: ...
 
     async with MemoryFabric() as fabric:
-        rt = NodeRuntime(node, fabric, system="t")
+        rt = NodeRuntime(node, fabric=fabric, system="t")
         rt.stop()
         with anyio.fail_after(2):
             await rt.run()

@@ -54,11 +54,11 @@ async def test_a_second_node_with_the_same_name_refuses_to_start() -> None:
     bus = MemoryBus()
     first, second = Node("monitor"), Node("monitor")
     async with MemoryFabric(bus=bus) as a, MemoryFabric(bus=bus) as b:
-        async with run_nodes(a, [first], system="t"):
+        async with run_nodes([first], fabric=a, system="t"):
             with pytest.raises(LifecycleError, match="'monitor' is already running"):
-                async with run_nodes(b, [second], system="t"):
+                async with run_nodes([second], fabric=b, system="t"):
                     pass
-        async with run_nodes(b, [second], system="t"):  # once the first is gone, it may
+        async with run_nodes([second], fabric=b, system="t"):  # once the first is gone, it may
             pass
 
 
@@ -75,7 +75,7 @@ async def test_nodes_that_go_and_come_back_are_logged(caplog: pytest.LogCaptureF
     caplog.set_level(logging.WARNING)
     bus = MemoryBus()
     async with MemoryFabric(bus=bus) as mine, MemoryFabric(bus=bus) as other:
-        watch = PeerWatch(mine, system="t", mine={"me"}, alone_after=60)
+        watch = PeerWatch(fabric=mine, system="t", mine={"me"}, alone_after=60)
         async with anyio.create_task_group() as tg:
             await tg.start(watch.run)
             tok = other.declare_token(keys.alive("t", "analysis"))
@@ -107,7 +107,7 @@ async def test_a_process_alone_or_without_knowledge_is_warned(
         for name in others:
             other.declare_token(keys.alive("lonely", name))
         watch = PeerWatch(
-            mine, system="lonely", expect_knowledge=expect_knowledge, alone_after=0.05
+            fabric=mine, system="lonely", expect_knowledge=expect_knowledge, alone_after=0.05
         )
         async with anyio.create_task_group() as tg:
             await tg.start(watch.run)

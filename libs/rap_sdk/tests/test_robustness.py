@@ -77,7 +77,7 @@ async def _feed(batch: list[bytes]) -> None:
         delivered.append(scan)
 
     async with MemoryFabric() as fabric:
-        rt = NodeRuntime(node, fabric, system="t")
+        rt = NodeRuntime(node, fabric=fabric, system="t")
         for payload in batch:
             await rt.handle(node.routes[0], Sample(KEY, payload))
         s, dup = rt.stats, rt.sender_stats.duplicates

@@ -78,6 +78,10 @@ class KbPut(_Req, frozen=True, tag="put"):
 
     record: KbRecord
     expect: int | None = None
+    budget_ms: int | None = None
+    """Milliseconds, from the service's receipt of the request, within which the write
+    must be stored, or never: past it the service refuses to store it, so a writer that
+    gave up waiting is never contradicted by a write stored later. None: no limit."""
 
 
 class KbDelete(_Req, frozen=True, tag="delete"):
@@ -85,6 +89,8 @@ class KbDelete(_Req, frozen=True, tag="delete"):
     writer: str
     version: int
     expect: int | None = None
+    budget_ms: int | None = None
+    """As for :class:`KbPut`."""
 
 
 class KbGet(_Req, frozen=True, tag="get"):
@@ -155,7 +161,8 @@ class KbReply(msgspec.Struct, frozen=True, kw_only=True, omit_defaults=True):
     """What went wrong and how to fix it, when ``ok`` is false."""
     code: str = ""
     """Machine-readable error kind: bad-request, conflict, not-found, too-large,
-    integrity, unavailable."""
+    integrity, unavailable (not stored), unknown (a durable write whose outcome the
+    service could not learn before its budget ran out: it may have been stored)."""
     version: int = 0
     record: KbRecord | None = None
     records: list[KbRecord] = []

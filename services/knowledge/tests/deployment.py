@@ -36,7 +36,7 @@ class Deployment:
 
             await fabric.wait_matched(keys.kb("t", "_keys"), queryable=True, timeout=10)
         return await self.stack.enter_async_context(
-            KnowledgeClient(fabric, system="t", writer=writer, **kw)
+            KnowledgeClient(fabric=fabric, system="t", writer=writer, **kw)
         )
 
 

@@ -69,9 +69,9 @@ async def two_nodes(
             await stack.enter_async_context(open_service(KnowledgeConfig(system="t"), fabric=kf))
         wf = await stack.enter_async_context(MemoryFabric(bus=bus))
         rf = await stack.enter_async_context(MemoryFabric(bus=bus))
-        slow = DelayedKnowledgeWrites(wf, tg, delay, drop)
-        writer = await stack.enter_async_context(run_nodes(slow, [monitor], system="t"))
-        reader = await stack.enter_async_context(run_nodes(rf, [analyse], system="t"))
+        slow = DelayedKnowledgeWrites(fabric=wf, tg=tg, delay=delay, drop=drop)
+        writer = await stack.enter_async_context(run_nodes([monitor], fabric=slow, system="t"))
+        reader = await stack.enter_async_context(run_nodes([analyse], fabric=rf, system="t"))
         yield seen, writer["monitor"], reader["analyse"]
         tg.cancel_scope.cancel()
 
@@ -151,7 +151,9 @@ async def promised(timeout: float) -> AsyncIterator[tuple[list[Any], list[str], 
         kf = await stack.enter_async_context(MemoryFabric(bus=bus))
         await stack.enter_async_context(open_service(KnowledgeConfig(system="t"), fabric=kf))
         fabric = await stack.enter_async_context(MemoryFabric(bus=bus))
-        group = await stack.enter_async_context(run_nodes(fabric, [monitor, analyse], system="t"))
+        group = await stack.enter_async_context(
+            run_nodes([monitor, analyse], fabric=fabric, system="t")
+        )
         group["analyse"].knowledge.timeout = timeout
         await feed(group["analyse"], range(1, 2), seen)  # analyse replicates laser_scan now
         yield seen, other, group["analyse"], Sealer("forger")

@@ -64,14 +64,14 @@ async def test_acknowledged_writes_survive_kill_9(tmp_path: Path) -> None:
     async with ZenohFabric(ZenohConfig(connect=[f"tcp/127.0.0.1:{port}"])) as fabric:
         async with service_process(db, port) as proc:
             await fabric.wait_matched(keys.kb("t", "_keys"), queryable=True, timeout=20)
-            async with KnowledgeClient(fabric, system="t", writer="w", timeout=5) as kb:
+            async with KnowledgeClient(fabric=fabric, system="t", writer="w", timeout=5) as kb:
                 for i in range(200):
                     acked[f"k/{i % 20}"] = await kb.write(f"k/{i % 20}", i, durable=True)
             proc.send_signal(signal.SIGKILL)  # no shutdown, no flush
             await proc.wait()
         async with service_process(db, port):
             await fabric.wait_matched(keys.kb("t", "_keys"), queryable=True, timeout=20)
-            async with KnowledgeClient(fabric, system="t", writer="r", timeout=5) as kb:
+            async with KnowledgeClient(fabric=fabric, system="t", writer="r", timeout=5) as kb:
                 assert len(await kb.keys("k/*")) == 20
                 for key, version in acked.items():
                     rec = await kb.read_record(key)

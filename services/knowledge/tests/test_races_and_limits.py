@@ -172,7 +172,7 @@ async def test_replicas_made_before_the_service_existed_catch_up() -> None:
     async with AsyncExitStack() as stack:
         rf = await stack.enter_async_context(MemoryFabric(bus=bus))
         sf = await stack.enter_async_context(MemoryFabric(bus=bus))
-        reader = await stack.enter_async_context(KnowledgeClient(rf, system="t", writer="r"))
+        reader = await stack.enter_async_context(KnowledgeClient(fabric=rf, system="t", writer="r"))
         assert await reader.read("k", default=None) is None  # no service yet
         async with open_service(config, fabric=sf, store=store):
             with anyio.fail_after(5):

@@ -45,7 +45,7 @@ async def test_a_write_reported_failed_while_redis_is_down_is_never_stored(
             MemoryFabric(bus=bus) as sf,
             open_service(config, fabric=sf),
             MemoryFabric(bus=bus) as cf,
-            KnowledgeClient(cf, system="t", writer="w", timeout=1.0) as kb,
+            KnowledgeClient(fabric=cf, system="t", writer="w", timeout=1.0) as kb,
         ):
             await kb.write("k", "before", durable=True)
             await server.stop()

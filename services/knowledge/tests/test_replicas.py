@@ -75,8 +75,12 @@ async def test_replicas_catch_up_when_the_service_comes_back() -> None:
         from knowledge.core import Retention
 
         store = MemoryStore(Retention(config.history))
-        reader = await stack.enter_async_context(KnowledgeClient(rf, system="t", writer="reader"))
-        writer = await stack.enter_async_context(KnowledgeClient(wf, system="t", writer="writer"))
+        reader = await stack.enter_async_context(
+            KnowledgeClient(fabric=rf, system="t", writer="reader")
+        )
+        writer = await stack.enter_async_context(
+            KnowledgeClient(fabric=wf, system="t", writer="writer")
+        )
         async with open_service(config, fabric=store_holder, store=store):
             await writer.write("k", "before", durable=True)
             assert await reader.read("k") == "before"

@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from functools import partial
 from importlib import resources
 from pathlib import Path
 from typing import Annotated, Any
@@ -75,8 +76,8 @@ async def run_demo(
                 tracker = CycleTracker(Topology.of([*loop_nodes, service.node], system=system))
                 service.sync = tracker
                 async with anyio.create_task_group() as tg:
-                    await tg.start(tracker.follow, fabric)
-                    await tg.start(obs.follow, fabric)
+                    await tg.start(partial(tracker.follow, fabric=fabric))
+                    await tg.start(partial(obs.follow, fabric=fabric))
                     _say(f"simulating {duration:g} s of sim time in lockstep with the loop", t0)
                     await service.run(duration)
                     tg.cancel_scope.cancel()

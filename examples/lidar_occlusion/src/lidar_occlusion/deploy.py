@@ -97,7 +97,7 @@ async def local_deployment(
             stack.push_async_callback(_stop, name, proc)
             endpoints.append(ep)
             try:
-                await await_alive(fabric, sys_name, alive, STARTUP)
+                await await_alive(alive, fabric=fabric, system=sys_name, timeout=STARTUP)
             except TimeoutError as exc:
                 raise RuntimeError(
                     f"{name} did not come up ({exc}); its output is in {logs / (name + '.log')}"

@@ -14,6 +14,7 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
 import anyio
@@ -91,7 +92,7 @@ class Observer:
 
     # -- the loop, seen on the fabric ---------------------------------------------------
     async def follow(
-        self, fabric: Fabric, *, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
+        self, *, fabric: Fabric, task_status: anyio.abc.TaskStatus[None] = anyio.TASK_STATUS_IGNORED
     ) -> None:
         policy = InboxPolicy(capacity=65536, overflow=Overflow.FIFO)
         decoders = {
@@ -266,11 +267,11 @@ async def run_in_process(
         )
         tracker = CycleTracker(Topology.of([*loop_nodes, service.node], system=system))
         service.sync = tracker
-        await tg.start(tracker.follow, fabric)
-        await tg.start(obs.follow, fabric)
+        await tg.start(partial(tracker.follow, fabric=fabric))
+        await tg.start(partial(obs.follow, fabric=fabric))
         async with (
             open_service(KnowledgeConfig(system=system), fabric=fabric),
-            run_nodes(fabric, loop_nodes, system=system),
+            run_nodes(loop_nodes, fabric=fabric, system=system),
         ):
             await service.run(duration)
         tg.cancel_scope.cancel()

@@ -38,6 +38,6 @@ def run(
     async def main() -> None:
         fabric: Fabric = MemoryFabric() if memory else ZenohFabric(zenoh_config)
         async with fabric:
-            await serve(nodes, fabric, system=system, grace=grace)
+            await serve(nodes, fabric=fabric, system=system, grace=grace)
 
     anyio.run(main, backend_options={"use_uvloop": use_uvloop})

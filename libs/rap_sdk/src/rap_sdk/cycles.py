@@ -10,7 +10,7 @@ makes the loop's timing deterministic without a single sleep:
 
     topo = Topology.of(nodes, system="demo")
     tracker = CycleTracker(topo)
-    tg.start_soon(tracker.follow, fabric)        # subscribes to rap/demo/trace/**
+    tg.start_soon(partial(tracker.follow, fabric=fabric))        # subscribes to rap/demo/trace/**
     env = await rt.send(scan_key, scan)
     tracker.expect(env.uid, scan_key)
     await tracker.wait(env.uid, timeout=2.0)     # False: the loop lost the cycle
@@ -152,7 +152,7 @@ class CycleTracker:
         return False
 
     async def follow(
-        self, fabric: Fabric, *, task_status: TaskStatus[None] = anyio.TASK_STATUS_IGNORED
+        self, *, fabric: Fabric, task_status: TaskStatus[None] = anyio.TASK_STATUS_IGNORED
     ) -> None:
         """Feed the tracker from the system's trace records until cancelled."""
         policy = InboxPolicy(capacity=4096, overflow=Overflow.FIFO)

@@ -1,6 +1,6 @@
 """The knowledge client (docs/architecture.md, "Knowledge").
 
-    async with KnowledgeClient(fabric, system="tb4", writer="planner") as kb:
+    async with KnowledgeClient(fabric=fabric, system="tb4", writer="planner") as kb:
         v = await kb.write("planned_lidar_mask", mask)          # no round trip
         v = await kb.write("plan", plan, durable=True)          # acknowledged by the service
         mask = await kb.read("lidar_mask", LidarMask, min_version=v_from_event_ctx)
@@ -182,8 +182,8 @@ class _Replica:
 class KnowledgeClient:
     def __init__(
         self,
-        fabric: Fabric,
         *,
+        fabric: Fabric,
         system: str,
         writer: str,
         timeout: float = 2.0,

@@ -1,6 +1,6 @@
 """Who else is on the fabric: a process's view of the other nodes of its system.
 
-    watch = PeerWatch(fabric, system="demo", mine={"monitor", "analysis"})
+    watch = PeerWatch(fabric=fabric, system="demo", mine={"monitor", "analysis"})
     tg.start_soon(watch.run)
 
 From the liveliness tokens of ``rap/<system>/alive/*``, :class:`PeerWatch` logs (rate
@@ -47,8 +47,8 @@ class PeerStats:
 class PeerWatch:
     def __init__(
         self,
-        fabric: Fabric,
         *,
+        fabric: Fabric,
         system: str,
         mine: Collection[str] = (),
         expect_knowledge: bool = False,

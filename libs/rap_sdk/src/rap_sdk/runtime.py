@@ -227,8 +227,8 @@ class NodeRuntime:
     def __init__(
         self,
         node: Node,
-        fabric: Fabric,
         *,
+        fabric: Fabric,
         system: str,
         clock: Clock | None = None,
         trace: bool = True,
@@ -450,13 +450,15 @@ class NodeRuntime:
         token = None
         alive_key = keys.alive(self.system, self.node.name)
         try:
-            await refuse_running(self.fabric, self.system, [self.node.name])
+            await refuse_running(fabric=self.fabric, system=self.system, names=[self.node.name])
         except LifecycleError:
             self._state = "stopped"
             raise
         try:
             async with (
-                KnowledgeClient(self.fabric, system=self.system, writer=self.node.name) as kb,
+                KnowledgeClient(
+                    fabric=self.fabric, system=self.system, writer=self.node.name
+                ) as kb,
                 anyio.create_task_group() as tg,
             ):
                 self._knowledge = kb
@@ -528,7 +530,7 @@ class NodeRuntime:
             self._stopping.set()
 
 
-async def refuse_running(fabric: Fabric, system: str, names: Sequence[str]) -> None:
+async def refuse_running(*, fabric: Fabric, system: str, names: Sequence[str]) -> None:
     """Raise :class:`LifecycleError` when a node of one of ``names`` is already alive in
     ``system`` (a second one would handle every sample again)."""
     up = {
@@ -562,9 +564,9 @@ class NodeGroup:
 
 @asynccontextmanager
 async def run_nodes(
-    fabric: Fabric,
     nodes: Sequence[Node],
     *,
+    fabric: Fabric,
     system: str,
     clock: Clock | None = None,
     trace: bool = True,
@@ -577,9 +579,11 @@ async def run_nodes(
     if len(set(names)) != len(names):
         raise LifecycleError(f"node names must be unique within a group: {names}")
     group = NodeGroup(
-        [NodeRuntime(n, fabric, system=system, clock=clock, trace=trace) for n in nodes]
+        [NodeRuntime(n, fabric=fabric, system=system, clock=clock, trace=trace) for n in nodes]
     )
-    await refuse_running(fabric, system, names)  # before the task group: a plain error
+    await refuse_running(
+        fabric=fabric, system=system, names=names
+    )  # before the task group: a plain error
     async with anyio.create_task_group() as tg:
         for rt in group.runtimes:
             await tg.start(rt.run)
@@ -590,7 +594,7 @@ async def run_nodes(
             tg.cancel_scope.deadline = anyio.current_time() + grace
 
 
-async def await_alive(fabric: Fabric, system: str, names: set[str], timeout: float) -> None:
+async def await_alive(names: set[str], *, fabric: Fabric, system: str, timeout: float) -> None:
     """Wait until a liveliness token is up for each node in ``names`` (a node declares
     its token after its subscriptions: once seen, the node is reachable). Raises
     ``TimeoutError`` naming the nodes still missing after ``timeout`` s."""
@@ -606,10 +610,10 @@ async def await_alive(fabric: Fabric, system: str, names: set[str], timeout: flo
             raise TimeoutError(f"nodes {sorted(missing)} not alive within {timeout} s") from None
 
 
-async def serve(nodes: Sequence[Node], fabric: Fabric, *, system: str, grace: float = 5.0) -> None:
+async def serve(nodes: Sequence[Node], *, fabric: Fabric, system: str, grace: float = 5.0) -> None:
     """Run ``nodes`` until SIGTERM or SIGINT, then stop gracefully."""
     with anyio.open_signal_receiver(signal.SIGTERM, signal.SIGINT) as signals:
-        async with run_nodes(fabric, nodes, system=system, grace=grace):
+        async with run_nodes(nodes, fabric=fabric, system=system, grace=grace):
             async for signum in signals:
                 log.info(
                     "received %s; stopping %d node(s)", signal.Signals(signum).name, len(nodes)

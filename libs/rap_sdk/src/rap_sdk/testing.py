@@ -88,8 +88,8 @@ class DelayedKnowledgeWrites:
     """A fabric whose knowledge write-stream samples leave ``delay`` s late (or never,
     with ``drop``); everything else goes out at once. The write path of a slow link."""
 
-    def __init__(self, inner: Fabric, tg: TaskGroup, delay: float, drop: bool = False) -> None:
-        self._inner, self._tg, self._delay, self._drop = inner, tg, delay, drop
+    def __init__(self, *, fabric: Fabric, tg: TaskGroup, delay: float, drop: bool = False) -> None:
+        self._inner, self._tg, self._delay, self._drop = fabric, tg, delay, drop
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._inner, name)
@@ -199,14 +199,14 @@ class Harness:
         """Run ``nodes``; when this returns they are subscribed and reachable."""
         if not self.isolate:
             group = await self._stack.enter_async_context(
-                run_nodes(self.fabric, nodes, system=self.system, trace=self.trace)
+                run_nodes(nodes, fabric=self.fabric, system=self.system, trace=self.trace)
             )
             return group
         runtimes = []
         for node in nodes:
             fabric = await self._stack.enter_async_context(self._new_fabric(first=False))
             group = await self._stack.enter_async_context(
-                run_nodes(fabric, [node], system=self.system, trace=self.trace)
+                run_nodes([node], fabric=fabric, system=self.system, trace=self.trace)
             )
             runtimes += group.runtimes
         # Readiness by liveliness: a node declares its token after its subscriptions and
@@ -214,7 +214,7 @@ class Harness:
         # linked to it and knows its routes. Nodes reach the harness through its recorder.
         names = {rt.node.name for rt in runtimes}
         for fabric in [self.fabric, *(rt.fabric for rt in runtimes)]:
-            await await_alive(fabric, self.system, names, self.timeout)
+            await await_alive(names, fabric=fabric, system=self.system, timeout=self.timeout)
         for rt in runtimes:
             await rt.fabric.wait_matched(
                 keys.trace(self.system, rt.node.name), timeout=self.timeout

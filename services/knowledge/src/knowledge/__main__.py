@@ -108,7 +108,7 @@ async def _serve(config: KnowledgeConfig, zconf: ZenohConfig) -> None:
             open_service(config, fabric=fabric),
             anyio.create_task_group() as tg,
         ):
-            await tg.start(PeerWatch(fabric, system=config.system, mine={"knowledge"}).run)
+            await tg.start(PeerWatch(fabric=fabric, system=config.system, mine={"knowledge"}).run)
             log.info(
                 "ready: system %r, %s backend, listening on %s",
                 config.system,

@@ -83,7 +83,10 @@ async def _serve(share: NodeShare, zconf: ZenohConfig, system: str | None) -> No
     with anyio.open_signal_receiver(signal.SIGTERM, signal.SIGINT) as signals:
         async with ZenohFabric(zconf) as fabric, anyio.create_task_group() as tg:
             watch = PeerWatch(
-                fabric, system=name, mine={c.name for c in share.components}, expect_knowledge=True
+                fabric=fabric,
+                system=name,
+                mine={c.name for c in share.components},
+                expect_knowledge=True,
             )
             await tg.start(watch.run)
             async with anyio.create_task_group() as share_tg:

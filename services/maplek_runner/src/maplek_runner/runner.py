@@ -73,7 +73,7 @@ async def run_share(
         ", ".join(f"{c.name} ({c.spec.stage.value}, {c.spec.module})" for c in share.components),
     )
     async with run_nodes(
-        fabric, share.nodes, system=system, clock=clock, trace=trace, grace=grace
+        share.nodes, fabric=fabric, system=system, clock=clock, trace=trace, grace=grace
     ) as group:
         task_status.started(group)
         if stop is None:

@@ -34,6 +34,7 @@ import logging
 import math
 from collections.abc import AsyncIterator, Callable, Sequence
 from contextlib import asynccontextmanager
+from functools import partial
 
 import anyio
 import anyio.lowlevel
@@ -180,7 +181,7 @@ class SimService:
         task_status: TaskStatus[None] = anyio.TASK_STATUS_IGNORED,
     ) -> None:
         """Simulate ``duration`` s of sim time (None: until cancelled)."""
-        self.runtime = rt = NodeRuntime(self.node, self.fabric, system=self.system)
+        self.runtime = rt = NodeRuntime(self.node, fabric=self.fabric, system=self.system)
         async with anyio.create_task_group() as tg:
             await tg.start(rt.run)
             task_status.started()
@@ -299,7 +300,7 @@ async def open_service(
                     Topology.of([*loop_nodes, service.node], system=config.system)
                 )
                 service.sync = tracker
-                await tg.start(tracker.follow, fabric)
+                await tg.start(partial(tracker.follow, fabric=fabric))
             await tg.start(service.run, config.duration)
             try:
                 yield service

@@ -177,6 +177,7 @@ class ZenohFabric:
         """Peers (zenoh ids) linked now."""
         self._ever: set[str] = set()
         self._link_log = Throttle()
+        self._first_link: anyio.Event | None = None
         self._transports: Any = None
         cc = zenoh.CongestionControl
         self._cc = cc.BLOCK if self.config.congestion_control == "block" else cc.DROP
@@ -242,6 +243,8 @@ class ZenohFabric:
                 return
             self._linked.add(zid)
             st.links_up += 1
+            if self._first_link is not None:
+                self._first_link.set()
             again = zid in self._ever
             self._ever.add(zid)
             if again:
@@ -548,6 +551,11 @@ class ZenohFabric:
     async def alive(self, key_expr: str, *, timeout: float = 2.0) -> list[str]:
         self._life.check_open()
         validate(key_expr)
+        if self.config.connect and not self._linked:
+            # a session that has just opened may not be linked yet: it would hear nobody
+            self._first_link = self._first_link or anyio.Event()
+            with anyio.move_on_after(timeout):
+                await self._first_link.wait()
         done: asyncio.Future[None] = asyncio.get_running_loop().create_future()
         found: set[str] = set()
         push = self._push
