@@ -1,4 +1,4 @@
-"""bench/trust's hand-written monitors and yardsticks compute what the Monitor does on
+"""bench/trust's hand-written monitors and yardsticks compute what the SpecRunner does on
 the specs they stand for (the bench checks this again on its full traces before timing)."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 from typing import Any
 
 import pytest
-from trust_checker.monitor import Output
+from trust_checker.engine import Output
 
 from bench.trust import ticks
 from bench.trust.__main__ import FLOOR, STAGE_ORDER, STREAMS20, _Floor

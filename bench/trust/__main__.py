@@ -2,7 +2,7 @@
 run, written to bench/results/trust.json and the trust section of docs/benchmarks.md;
 exits 1 when a budget is missed.
 
-1. µs per tick of :class:`trust_checker.monitor.Monitor` against the same spec written by
+1. µs per tick of :class:`trust_checker.engine.SpecRunner` against the same spec written by
    hand (bench/trust/by_hand.py), in this process, on one generated trace, after checking
    that both give identical outputs on all of it (bench/trust/ticks.py): the MAPLE-K
    library's stage order (specs/maplek/stage_order.dsrv) and twenty streams of mixed
@@ -27,9 +27,9 @@ from pathlib import Path
 from typing import Any
 
 import anyio
-from trust_checker.compile import ConstNode, Node, VarNode
+from trust_checker.engine import SpecRunner
+from trust_checker.engine.nodes import ConstNode, ExprNode, VarNode
 from trust_checker.lang import load_spec
-from trust_checker.monitor import Monitor
 from trust_checker.values import MapV
 
 from ..report import ROOT, hardware_line, run_suite, table
@@ -96,9 +96,9 @@ def measure(quick: bool) -> dict[str, Any]:
 def _shape(spec: Path) -> dict[str, int]:
     """How much a tick of ``spec`` computes: streams, and operator nodes (not literals
     or stream references) in their compiled expressions."""
-    mon = Monitor(load_spec(spec))
+    mon = SpecRunner(load_spec(spec))
 
-    def ops(n: Node) -> int:
+    def ops(n: ExprNode) -> int:
         here = not isinstance(n, VarNode | ConstNode)
         return int(here) + sum(ops(k) for k in n.children)
 
@@ -201,7 +201,7 @@ def render(m: dict[str, Any], v: dict[str, Any], hw: dict[str, Any]) -> str:
             tick_rows.append(
                 [
                     label if impl == "monitor" else "",
-                    ("Monitor" if not alone or name == "floor" else "not RAP")
+                    ("SpecRunner" if not alone or name == "floor" else "not RAP")
                     if impl == "monitor"
                     else "by hand",
                     s["p50_us"],
@@ -232,7 +232,7 @@ def render(m: dict[str, Any], v: dict[str, Any], hw: dict[str, Any]) -> str:
         "",
         f"Hardware: {hardware_line(hw)}",
         "",
-        "µs per tick of the checker's `Monitor` against the same spec written by hand in "
+        "µs per tick of the checker's `SpecRunner` against the same spec written by hand in "
         "Python (`bench/trust/by_hand.py`: the same sample-and-hold, offsets and per-cycle "
         "map, returning the same `Output` rows; no input type checks), in one process on "
         "one generated trace. Before timing, both run the whole trace and must give "

@@ -5,8 +5,8 @@ inputs are sampled and held (NoVal until a first value), lifted streams have no 
 until all their operands have had one, ``x[k]`` is x's held value k ticks ago (⊥ before
 that: here ``None`` in the history), ``default`` replaces ⊥. It keeps the same per-cycle
 map as the spec (mutated in place, where the spec's values are immutable and copied). It
-returns the same :class:`~trust_checker.monitor.Output` rows the monitor does (that is
-the monitor's contract, and what every transport consumes), but checks no input types
+returns the same :class:`~trust_checker.engine.Output` rows the runner does (that is
+the runner's contract, and what every transport consumes), but checks no input types
 and no Int overflow: the traces stay far from 2**63, and give every input its declared
 type.
 """
@@ -17,7 +17,7 @@ import random
 from typing import Any
 
 import immutables
-from trust_checker.monitor import Output
+from trust_checker.engine import Output
 from trust_checker.values import BOTTOM, NOVAL, MapV
 
 STAGES = ("monitor", "analyse", "plan", "legitimate", "execute")
@@ -75,7 +75,7 @@ class StageOrderByHand:
 class StageOrderAsSpecified:
     """The stage-order spec as straight-line Python that keeps the language's values:
     what a generator emitting one Python function per spec could at best produce, short
-    of proving in-place updates safe. Same inputs and outputs as the Monitor (inputs
+    of proving in-place updates safe. Same inputs and outputs as the SpecRunner (inputs
     type-checked and held, NoVal until each has a value, ``x[1]`` is ⊥ on the first
     tick), but no call per operator: each stream is one inline expression. Its map and
     list are immutable as the spec says: every ``Map.insert`` / ``Map.remove`` builds a

@@ -6,10 +6,11 @@ endpoint and prints READY once it is subscribed):
         rap/SYSTEM/** the way the checker's transport does (envelope opened, duplicates
         dropped, the StageTrace body decoded) and answers each with a sealed
         rap.TrustOutput on rap/SYSTEM/trust/echo: the same hops and envelopes as the
-        checker, without its session and monitor
+        checker, without its session and spec runner
     python -m bench.trust.peer session SYSTEM ENDPOINT SPEC
-        the checker's fabric transport and session (trust_checker.io) on SPEC with no
-        other sink: ``python -m trust_checker --fabric`` without its console output
+        the checker's fabric transport and session (trust_checker.service.open_service)
+        on SPEC with no other sink: ``python -m trust_checker --fabric`` without its
+        console output (and without verdicts)
 """
 
 from __future__ import annotations
@@ -55,21 +56,18 @@ async def echo(system: str, endpoint: str) -> None:
 
 
 async def session(system: str, endpoint: str, spec_path: str) -> None:
-    from trust_checker.config import FabricConfig
-    from trust_checker.io.fabric import FabricTransport
-    from trust_checker.io.session import Session
-    from trust_checker.io.specs import load_text
+    from trust_checker.config import FabricConfig, ServiceConfig
     from trust_checker.lang import load_spec
-    from trust_checker.monitor import Monitor
+    from trust_checker.service import open_service
 
     spec = load_spec(Path(spec_path))
-    async with ZenohFabric(ZenohConfig(connect=[endpoint])) as fabric:
-        sess = Session(Monitor(spec), loader=load_text)
-        transport = FabricTransport(sess, fabric, FabricConfig(system=system))
-        async with anyio.create_task_group() as tg:
-            await tg.start(sess.run)
-            await tg.start(transport.run)
-            print("READY", flush=True)
+    config = ServiceConfig(verdicts=False, fabric=FabricConfig(system=system))
+    async with (
+        ZenohFabric(ZenohConfig(connect=[endpoint])) as fabric,
+        open_service(config, spec, fabric=fabric),
+    ):
+        print("READY", flush=True)
+        await anyio.sleep_forever()
 
 
 def main(argv: list[str]) -> None:

@@ -1,5 +1,5 @@
-"""µs per tick of the Monitor against the same spec written by hand (bench/trust/by_hand.py),
-in one process, on one generated trace.
+"""µs per tick of the SpecRunner against the same spec written by hand
+(bench/trust/by_hand.py), in one process, on one generated trace.
 
 Both run the whole trace in batches of ticks, interleaved round by round (a fresh
 monitor and a fresh hand-written one each round, first round discarded as warm-up); a
@@ -17,8 +17,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
+from trust_checker.engine import Output, SpecRunner
 from trust_checker.lang import load_spec
-from trust_checker.monitor import Monitor, Output
 
 from ..report import pct
 
@@ -37,10 +37,10 @@ def check_same(
     trace: Sequence[dict[str, Any]],
     contender: Callable[[], Stepper] | None = None,
 ) -> int:
-    """Both monitors (``contender``, by default the Monitor on ``spec``, and ``by_hand``)
+    """Both monitors (``contender``, by default the SpecRunner on ``spec``, and ``by_hand``)
     on the whole trace: AssertionError at the first tick they differ. Returns the number
     of outputs compared."""
-    mon: Stepper = contender() if contender else Monitor(load_spec(spec))
+    mon: Stepper = contender() if contender else SpecRunner(load_spec(spec))
     ref = by_hand()
     n = 0
     for i, rec in enumerate(trace):
@@ -77,11 +77,11 @@ def measure(
     batch: int,
     contender: Callable[[], Stepper] | None = None,
 ) -> dict[str, Any]:
-    """``contender`` (default: a fresh Monitor on ``spec``) against ``by_hand``; the
+    """``contender`` (default: a fresh SpecRunner on ``spec``) against ``by_hand``; the
     contender's figures are under "monitor"."""
     outputs = check_same(spec, by_hand, trace, contender)
     parsed = load_spec(spec)
-    fresh: Callable[[], Stepper] = contender or (lambda: Monitor(parsed))
+    fresh: Callable[[], Stepper] = contender or (lambda: SpecRunner(parsed))
     samples: dict[str, list[float]] = {"monitor": [], "by_hand": []}
     ratios: list[float] = []
     for r in range(rounds + 1):

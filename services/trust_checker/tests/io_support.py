@@ -1,5 +1,5 @@
-"""Helpers of the I/O tests: a hand-written monitor, a recording sink, a mosquitto of the
-test's own. (No tests here.)"""
+"""Helpers of the I/O tests: a hand-written spec runner, a recording sink, a mosquitto of
+the test's own. (No tests here.)"""
 
 from __future__ import annotations
 
@@ -36,7 +36,7 @@ class Out:
     ts_ns: int | None
 
 
-class FakeMonitor:
+class FakeRunner:
     """Every output is the running total of the Int inputs so far (history that a swap
     carries over); an input "bottom" makes every output ⊥; the Str input "boom" fails the
     tick; a value that is not an Int or Str is refused (InputError)."""
@@ -73,9 +73,9 @@ class FakeMonitor:
             value = self.total
         return [Out(o, tick, value, ts_ns) for o in self.spec.outputs]
 
-    def swap(self, spec: Any) -> FakeMonitor:
+    def swap(self, spec: Any) -> FakeRunner:
         assert isinstance(spec, FakeSpec)
-        return FakeMonitor(spec, self.total, self.tick)
+        return FakeRunner(spec, self.total, self.tick)
 
     def next_due(self, ts: int) -> int | None:
         p = self.spec.period_ns

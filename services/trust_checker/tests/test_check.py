@@ -375,6 +375,7 @@ def test_exports() -> None:
         "memory_bound",
         "parse_expr",
         "parse_spec",
+        "read_source",
     }
     for name in lang.__all__:
         assert getattr(lang, name) is not None

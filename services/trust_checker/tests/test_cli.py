@@ -13,6 +13,8 @@ import anyio
 import pytest
 from anyio.abc import Process
 from anyio.streams.text import TextReceiveStream
+from rap_sdk import entry
+from trust_checker.__main__ import cli
 from trust_checker.lang import load_spec
 from trust_checker.tracefile import read_trace, run_trace
 
@@ -41,13 +43,14 @@ w = y
 """
 
 
-def run_cli(*args: str | Path) -> subprocess.CompletedProcess[str]:
+def run_cli(*args: str | Path, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
         [sys.executable, "-m", "trust_checker", *map(str, args)],
         capture_output=True,
         text=True,
         timeout=30,
         check=False,
+        cwd=cwd,
     )
 
 
@@ -70,7 +73,8 @@ def test_bad_spec_exits_2_with_every_problem(tmp_path: Path) -> None:
     assert res.stdout == ""
     assert f"{spec}:4:1:" in res.stderr
     assert "hint:" in res.stderr
-    assert "not started" in res.stderr
+    assert "Traceback" not in res.stderr
+    assert res.stderr.splitlines()[-1].startswith(f"error: {spec}: 1 problem; not started - ")
     check = run_cli(spec, "--check")
     assert check.returncode == 2
     assert f"{spec}:4:1:" in check.stderr
@@ -83,28 +87,109 @@ def test_check_only_validates(tmp_path: Path) -> None:
     assert "ok (inputs: x, y; outputs: z, d)" in res.stdout
 
 
-@pytest.mark.parametrize(
-    ("args", "message"),
-    [
-        ((), "nothing to run on"),
-        (("--mqtt", "host:notaport"), "is not HOST:PORT"),
-        (("--mqtt", "h:1", "--topics", '{"x": {"topik": "a"}}'), "--topics"),
-        (("--tick", "sometimes", "--mqtt", "h:1"), "unknown tick policy"),
-        (("--fabric", "bad/system"), "invalid system"),
-        (("--fabric", "s", "--connect", "nowhere"), "not a Zenoh endpoint"),
-    ],
-)
-def test_bad_options_exit_2(tmp_path: Path, args: tuple[str, ...], message: str) -> None:
+def one_error_line(stderr: str) -> str:
+    """The single ``error: what - how to fix`` line a mistake gives (never a traceback)."""
+    assert "Traceback" not in stderr, stderr
+    lines = stderr.splitlines()
+    assert len(lines) == 1, stderr
+    (line,) = lines
+    assert line.startswith("error: "), line
+    # how to fix it: after " - ", or the key checks' "...: use <what a name may be>"
+    assert " - " in line or ": use " in line, f"no 'how to fix' part: {line}"
+    return line
+
+
+MISTAKES = [
+    (("--tick", "sometimes", "--mqtt", "h:1"), "--tick: unknown tick policy 'sometimes'"),
+    (("--tick", "window:0ms", "--mqtt", "h:1"), "--tick: duration '0ms' is out of range"),
+    (("--mqtt", "host:notaport"), "--mqtt 'host:notaport' is not HOST:PORT"),
+    (("--mqtt", "h:70000"), "--mqtt 'h:70000' is not HOST:PORT"),
+    (("--mqtt", "h:1", "--topics", '{"x": {"topik": "a"}}'), "--topics: Object contains unknown"),
+    (("--mqtt", "h:1", "--topics", "not json"), "--topics is not a JSON object"),
+    (("--mqtt", "h:1", "--topics", "[" * 5000), "--topics: Expected `object`, got `array`"),
+    (("--fabric", "s", "--fabric-inputs", "[1]"), "--fabric-inputs: Expected `object`"),
+    (("--fabric", "s", "--no-default-inputs"), "--no-default-inputs leaves nothing to read"),
+    (("--fabric", "bad/system"), "--fabric: invalid system"),
+    (("--fabric", "s", "--node", "a/b"), "--node 'a/b'"),
+    (("--fabric", "s", "--connect", "nowhere"), "--connect 'nowhere' is not a Zenoh endpoint"),
+    (("--fabric", "s", "--listen", "tcp"), "--listen 'tcp' is not a Zenoh endpoint"),
+    (("--log-level", "LOUD"), "--log-level 'LOUD' is not a logging level"),
+    (("--bogus",), "No such option: --bogus"),
+    ((), "nothing to run on"),
+    (("--input-file", "t.trace", "--mqtt", "h:1"), "--input-file runs alone"),
+]
+
+
+@pytest.mark.parametrize(("args", "message"), MISTAKES, ids=[m for _, m in MISTAKES])
+def test_every_mistake_is_one_error_line_and_exit_2(
+    tmp_path: Path,
+    args: tuple[str, ...],
+    message: str,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
     (tmp_path / "s.dsrv").write_text(SPEC)
-    res = run_cli(tmp_path / "s.dsrv", *args)
-    assert res.returncode == 2
-    assert message in res.stderr
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exited:
+        entry.run_cli(cli, ["s.dsrv", *args], prog="python -m trust_checker")
+    assert exited.value.code == 2
+    line = one_error_line(capsys.readouterr().err)
+    assert message in line
 
 
-def test_missing_spec_file_exits_2(tmp_path: Path) -> None:
-    res = run_cli(tmp_path / "nope.dsrv", "--check")
+def test_mistakes_in_files_are_one_located_line(tmp_path: Path) -> None:
+    (tmp_path / "s.dsrv").write_text(SPEC)
+    (tmp_path / "bin.dsrv").write_bytes(b"in x: Int\nout y\ny = \xff\xfex\n")
+    (tmp_path / "bin.trace").write_bytes(b"0: x = 1\n1: x = \x00\x9f\n")
+    (tmp_path / "bad.trace").write_text("0: x = 1\n1: x = 2 +\n")
+    cases = [
+        (("nope.dsrv", "--check"), "nope.dsrv: cannot read the spec: No such file"),
+        (("bin.dsrv", "--check"), "bin.dsrv:3:5: the spec is not UTF-8 text (byte 0xff)"),
+        ((".", "--check"), ".: is a directory"),
+        (("s.dsrv", "--input-file", "nope.trace"), "nope.trace: cannot read the trace"),
+        (
+            ("s.dsrv", "--input-file", "bin.trace"),
+            "bin.trace:2:9: the trace is not UTF-8 text (byte 0x9f)",
+        ),
+        (("s.dsrv", "--input-file", "bad.trace"), "bad.trace:2:"),
+    ]
+    for args, message in cases:
+        res = run_cli(*args, cwd=tmp_path)
+        assert res.returncode == 2, (args, res.stderr)
+        assert res.stdout == ""
+        assert message in one_error_line(res.stderr), args
+
+
+def test_a_run_time_error_in_a_trace_comes_after_every_tick_before_it(tmp_path: Path) -> None:
+    (tmp_path / "s.dsrv").write_text("in x: Int\nout y: Int\ny = 10 / x\nout n: Int\nn = 1\n")
+    (tmp_path / "t.trace").write_text("0: x = 5\n1: x = 2\n// zero next\n2: x = 0\n3: x = 1\n")
+    for extra in ((), ("--explain",)):
+        res = run_cli("s.dsrv", "--input-file", "t.trace", *extra, cwd=tmp_path)
+        assert res.returncode == 1, res.stderr
+        assert res.stdout.splitlines() == [
+            "y[0] = Int(2)",
+            "n[0] = Int(1)",
+            "y[1] = Int(5)",
+            "n[1] = Int(1)",
+        ]
+        line = one_error_line(res.stderr)
+        assert line.startswith("error: t.trace:4:1: Int division by zero: 10 / 0 (guard")
+        assert "in 'y' at tick 2 (s.dsrv:3:8) - " in line
+
+
+def test_a_refused_value_in_a_trace_comes_after_every_tick_before_it(tmp_path: Path) -> None:
+    (tmp_path / "s.dsrv").write_text(SPEC)
+    (tmp_path / "t.trace").write_text("0: x = 1\n   y = 2\n1: x = 3\n2: y = true\n")
+    res = run_cli("s.dsrv", "--input-file", "t.trace", cwd=tmp_path)
     assert res.returncode == 2
-    assert "cannot read spec" in res.stderr
+    assert res.stdout.splitlines() == [
+        "z[0] = Int(3)",
+        "d[0] = Int(0)",
+        "z[1] = Int(5)",
+        "d[1] = Int(1)",
+    ]
+    line = one_error_line(res.stderr)
+    assert line.startswith("error: t.trace:4:1: input 'y' at tick 2: expected Int, got Bool")
 
 
 async def _read_until(stream: TextReceiveStream, text: str, seen: list[str]) -> None:

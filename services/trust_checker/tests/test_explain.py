@@ -8,10 +8,10 @@ from collections.abc import Mapping, Sequence
 import msgspec
 import pytest
 from rap_schemas import TrustCause, TrustVerdict
+from trust_checker.engine import SpecRunner
 from trust_checker.errors import EvalError, InputError
-from trust_checker.explain import Cause, Explainer, Verdict, expr_text, to_message
+from trust_checker.explain import Cause, ExplainedVerdict, Explainer, expr_text, to_message
 from trust_checker.lang import load_spec, parse_expr
-from trust_checker.monitor import Monitor
 from trust_checker.values import BOTTOM
 
 LATENCY = """\
@@ -23,18 +23,20 @@ ok = latency < 2.0 && approved
 
 
 def explainer(spec: str, **kw: int) -> Explainer:
-    return Explainer(Monitor(load_spec(spec)), **kw)
+    return Explainer(SpecRunner(load_spec(spec)), **kw)
 
 
-def run(spec: str | Explainer, ticks: Sequence[Mapping[str, object]], **kw: int) -> list[Verdict]:
+def run(
+    spec: str | Explainer, ticks: Sequence[Mapping[str, object]], **kw: int
+) -> list[ExplainedVerdict]:
     ex = explainer(spec, **kw) if isinstance(spec, str) else spec
-    out: list[Verdict] = []
+    out: list[ExplainedVerdict] = []
     for i, t in enumerate(ticks):
         out += ex.step(t, 1_000 + i).verdicts
     return out
 
 
-def because(v: Verdict) -> list[tuple[object, ...]]:
+def because(v: ExplainedVerdict) -> list[tuple[object, ...]]:
     """Each cause as (depth, expr, value[, input, input_tick])."""
     return [
         (c.depth, c.expr, c.value)
@@ -248,7 +250,7 @@ def test_because_is_bounded() -> None:
 
 def test_a_spec_without_source_text_is_written_out_from_the_tree() -> None:
     spec = dataclasses.replace(load_spec(LATENCY), source="")
-    ex = Explainer(Monitor(spec))
+    ex = Explainer(SpecRunner(spec))
     (v,) = run(ex, [{"latency": 3.0, "approved": True}])
     assert v.expr == "latency < 2.0 && approved"
     assert [c.expr for c in v.because] == ["latency < 2.0", "latency"]
@@ -393,7 +395,7 @@ def test_swap_carries_arrival_ticks_and_last_values_over() -> None:
     ex = explainer(LATENCY)
     run(ex, [{"latency": 1.0, "approved": True}, {"latency": 1.2}])
     new = ex.swap(load_spec(LATENCY.replace("2.0", "1.1")))
-    assert new.monitor.tick == 2
+    assert new.runner.tick == 2
     (v,) = new.step({"approved": True}).verdicts  # 1.2 < 1.1 is false: a turn
     assert because(v) == [(0, "latency < 1.1", False), (1, "latency", 1.2, "latency", 1)]
     assert new.step({"approved": True}).verdicts == []  # still false: no new verdict
@@ -427,10 +429,10 @@ def test_a_trigger_firing_at_an_earlier_drain_tick_is_kept_and_explained() -> No
     _, verdicts = ex.finish()  # drain tick 2: x[2] = 9; tick 3: x[2] = 1, x[1] = ⊥
     assert [(v.stream, v.tick, v.message) for v in verdicts] == [("trigger.0", 2, "late")]
     assert because(verdicts[0]) == [(0, "x[2]", 9, "x", 0)]
-    mon = Monitor(load_spec(spec))
+    mon = SpecRunner(load_spec(spec))
     mon.step({"x": 9})
     mon.step({"x": 1})
-    mon.finish()  # Monitor.fired: every drain tick's firings, not only the last one's
+    mon.finish()  # SpecRunner.fired: every drain tick's firings, not only the last one's
     assert [(f.tick, f.trigger, f.message) for f in mon.fired] == [(2, 0, "late")]
 
 

@@ -19,16 +19,14 @@ from rap_schemas import Pose2D, TrustOutput, TrustVerdict, keys
 from rap_sdk import Sealer, ZenohConfig, ZenohFabric
 from rap_sdk.envelope import typed_decoder
 from rap_sdk.fabric import free_port
-from trust_checker.config import FabricConfig, FabricInput, MqttConfig
-from trust_checker.io.fabric import FabricTransport
-from trust_checker.io.mqtt import MqttTransport
+from trust_checker.config import FabricConfig, FabricInput, MqttConfig, ServiceConfig
 from trust_checker.io.session import Session
 from trust_checker.io.specs import load_text
-from trust_checker.monitor import Monitor
+from trust_checker.service import open_service
 from trust_checker.tracefile import read_trace, run_trace
 
 from services.trust_checker.tests.io_support import (
-    FakeMonitor,
+    FakeRunner,
     FakeSpec,
     RecordingSink,
     fake_loader,
@@ -74,9 +72,8 @@ async def test_session_gives_verdicts_after_outputs_and_keeps_explaining_across_
 
     sink = VerdictRecorder()
     plain = RecordingSink()  # a sink without verdicts() gets outputs only
-    session = Session(Monitor(load_text(SPEC)), loader=load_text, sinks=[sink, plain], explain=True)
-    async with anyio.create_task_group() as tg:
-        await tg.start(session.run)
+    async with open_service(ServiceConfig(), load_text(SPEC), sinks=[sink, plain]) as service:
+        session = service.session
         for i, x in enumerate((1.0, 2.5, 3.0, 6.0)):
             await session.submit(Arrival({"x": x}, 1_000 + i, "test"))
         await session.wait_idle()
@@ -85,7 +82,6 @@ async def test_session_gives_verdicts_after_outputs_and_keeps_explaining_across_
         await session.submit(Arrival({"x": 1.0}, 2_000, "test"))  # tick 4: true
         await session.submit(Arrival({"x": 8.0}, 2_001, "test"))  # tick 5: false again
         await session.wait_idle()
-        session.close()
     assert [summary(v) for v in sink.got] == [
         ("ok", 1, False, "output", None, ""),
         ("trigger.0", 3, True, "trigger", "critical", "far out"),
@@ -100,9 +96,9 @@ async def test_session_gives_verdicts_after_outputs_and_keeps_explaining_across_
     assert len(plain.outs) == len(sink.outs) == 6
 
 
-def test_explain_needs_a_real_monitor() -> None:
-    with pytest.raises(TypeError, match="needs a trust_checker Monitor"):
-        Session(FakeMonitor(FakeSpec(("a",), ("s",))), loader=fake_loader, explain=True)
+def test_explain_needs_a_real_runner() -> None:
+    with pytest.raises(TypeError, match="needs a trust_checker SpecRunner"):
+        Session(FakeRunner(FakeSpec(("a",), ("s",))), loader=fake_loader, explain=True)
 
 
 # -- MQTT -----------------------------------------------------------------------------------
@@ -112,17 +108,13 @@ def test_explain_needs_a_real_monitor() -> None:
 async def test_mqtt_publishes_verdicts_as_json_on_the_verdict_topic(tmp_path: Path) -> None:
     async with mosquitto(tmp_path) as broker:
         cfg = MqttConfig(port=broker.port, timeout=5.0, verdict_topic="checks/verdicts")
-        session = Session(Monitor(load_text(SPEC)), loader=load_text, explain=True)
-        transport = MqttTransport(session, cfg)
         got: list[tuple[str, Any]] = []
         async with (
+            open_service(ServiceConfig(mqtt=cfg), load_text(SPEC)),
             aiomqtt.Client("127.0.0.1", broker.port, timeout=5.0) as client,
-            anyio.create_task_group() as tg,
         ):
             await client.subscribe("checks/verdicts")
             await client.subscribe("ok")
-            await tg.start(session.run)
-            await tg.start(transport.run)
             for x in ("1.0", '{"Float": 2.5}', "3.0", '{"value": 6.5}'):
                 await client.publish("x", x)
             with anyio.fail_after(10):
@@ -130,7 +122,6 @@ async def test_mqtt_publishes_verdicts_as_json_on_the_verdict_topic(tmp_path: Pa
                     got.append((message.topic.value, json.loads(bytes(message.payload))))
                     if len(got) == 6:  # 4 outputs, 2 verdicts
                         break
-            tg.cancel_scope.cancel()
     verdicts = [p for t, p in got if t == "checks/verdicts"]
     assert [p for t, p in got if t == "ok"] == [{"value": v} for v in (True, False, False, False)]
     ts = verdicts[0].pop("ts")
@@ -162,21 +153,16 @@ async def test_mqtt_verdict_topic_empty_publishes_none(tmp_path: Path) -> None:
     async with mosquitto(tmp_path) as broker:
         cfg = MqttConfig(port=broker.port, timeout=5.0, verdict_topic="")
         recorder = RecordingSink()
-        session = Session(
-            Monitor(load_text(SPEC)), loader=load_text, sinks=[recorder], explain=True
-        )
-        transport = MqttTransport(session, cfg)
-        async with anyio.create_task_group() as tg:
-            await tg.start(session.run)
-            await tg.start(transport.run)
+        service_config = ServiceConfig(mqtt=cfg)
+        async with open_service(service_config, load_text(SPEC), sinks=[recorder]) as service:
             async with aiomqtt.Client("127.0.0.1", broker.port, timeout=5.0) as client:
                 await client.publish("x", "1.0")
                 await client.publish("x", "9.0")  # ok turns false, the trigger fires
                 await recorder.wait_for(n_outs=2)
-                await session.wait_idle()  # the second tick's sinks are done
-            tg.cancel_scope.cancel()
-    assert session.stats.verdicts == 2
-    assert transport.stats.published == 2  # the two outputs only
+                await service.session.wait_idle()  # the second tick's sinks are done
+    assert service.session.stats.verdicts == 2
+    assert service.mqtt is not None
+    assert service.mqtt.stats.published == 2  # the two outputs only
 
 
 # -- the fabric -------------------------------------------------------------------------------
@@ -191,11 +177,11 @@ _open_output = typed_decoder(TrustOutput)
 async def test_fabric_publishes_sealed_verdicts_next_to_the_outputs() -> None:
     port = free_port()
     pose = keys.data(SYS, "pose")
-    config = FabricConfig(
-        system=SYS,
+    config = ServiceConfig(
         node="tcv",
-        inputs={"x": FabricInput(key=pose, field="x")},
-        default_inputs=False,
+        fabric=FabricConfig(
+            system=SYS, inputs={"x": FabricInput(key=pose, field="x")}, default_inputs=False
+        ),
     )
     verdicts: list[tuple[str, str, TrustVerdict]] = []
     outputs: list[tuple[str, TrustOutput]] = []
@@ -219,16 +205,13 @@ async def test_fabric_publishes_sealed_verdicts_next_to_the_outputs() -> None:
     async with (
         ZenohFabric(ZenohConfig(listen=[f"tcp/127.0.0.1:{port}"])) as fab,
         ZenohFabric(ZenohConfig(listen=[], connect=[f"tcp/127.0.0.1:{port}"])) as peer,
+        open_service(config, load_text(SPEC), fabric=fab) as service,
         anyio.create_task_group() as tg,
     ):
-        session = Session(Monitor(load_text(SPEC)), loader=load_text, explain=True)
-        transport = FabricTransport(session, fab, config)
         vsub = peer.subscribe(keys.pattern(SYS, keys.Kind.TRUST, "*/verdict"))
         osub = peer.subscribe(keys.pattern(SYS, keys.Kind.TRUST, "*"))
         tg.start_soon(collect_verdicts, vsub)
         tg.start_soon(collect_outputs, osub)
-        await tg.start(session.run)
-        await tg.start(transport.run)
         await peer.wait_matched(pose)
         await fab.wait_matched(keys.trust(SYS, "ok/verdict"))
         await fab.wait_matched(keys.trust(SYS, "ok"))
@@ -256,7 +239,8 @@ async def test_fabric_publishes_sealed_verdicts_next_to_the_outputs() -> None:
         (TrustOutput.TYPE, "ok", 1, False),
         (TrustOutput.TYPE, "ok", 2, False),
     ]
-    assert transport.stats.verdicts == 2
+    assert service.fabric is not None
+    assert service.fabric.stats.verdicts == 2
 
 
 # -- the command line ---------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""The evaluator's fast paths (trust_checker.compile: typed operators, comparisons fused
+"""The evaluator's fast paths (trust_checker.engine.lifted: typed operators, comparisons fused
 into their parent, ``if`` chains as tables, ``x[k]`` defaults, skipped streams) give what
 the general path gives, on values of every type, at the edges (64-bit overflow, NaN,
 -0.0, infinities) and off the declared types (values of another type, ⊥)."""
@@ -11,9 +11,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from trust_checker import operators as op
+from trust_checker.engine import SpecRunner
 from trust_checker.errors import EvalError
 from trust_checker.lang import load_spec
-from trust_checker.monitor import Monitor
 from trust_checker.values import BOTTOM, INT_MAX, INT_MIN, console
 
 SETTINGS = settings(max_examples=40, deadline=None)
@@ -44,7 +44,7 @@ def _expected(o: str, a: object, b: object) -> str:
         return "error"
 
 
-def _got(m: Monitor, inputs: dict[str, object]) -> str:
+def _got(m: SpecRunner, inputs: dict[str, object]) -> str:
     try:
         outs = m.step(inputs)
     except EvalError:
@@ -79,7 +79,7 @@ def _typed(o: str, ta: str, tb: str) -> bool:
 @given(data=st.data())
 def test_binary_operators_on_declared_types(o: str, ta: str, tb: str, data: Any) -> None:
     spec = load_spec(f"in a: {ta}\nin b: {tb}\nout r\nr = a {o} b\n")
-    m = Monitor(spec)
+    m = SpecRunner(spec)
     for _ in range(4):
         a = data.draw(st.one_of(VALUES[ta], st.just(BOTTOM)))
         b = data.draw(st.one_of(VALUES[tb], st.just(BOTTOM)))
@@ -91,7 +91,7 @@ def test_binary_operators_on_declared_types(o: str, ta: str, tb: str, data: Any)
 @SETTINGS
 @given(st.lists(st.one_of(st.integers(-3, 3), st.just(INT_MAX), st.booleans(), st.text("ab"))))
 def test_untyped_streams_take_the_general_path(values: list[object]) -> None:
-    m = Monitor(load_spec("in a\nin b: Int\nout r\nout e\nr = a + b\ne = a == 1\n"))
+    m = SpecRunner(load_spec("in a\nin b: Int\nout r\nout e\nr = a + b\ne = a == 1\n"))
     for v in values:
         try:
             outs = {o.stream: console(o.value) for o in m.step({"a": v, "b": 1})}
@@ -109,7 +109,7 @@ def test_untyped_streams_take_the_general_path(values: list[object]) -> None:
 @SETTINGS
 @given(st.lists(st.sampled_from(["monitor", "plan", "execute", "x", ""]), min_size=1))
 def test_an_if_chain_on_one_stream_is_a_table(stages: list[str]) -> None:
-    m = Monitor(
+    m = SpecRunner(
         load_spec(
             'in s: Str\nout r: Int\nr = if s == "monitor" then 0 else if s == "plan" '
             'then 2 else if "monitor" == s then 9 else -1\n'
@@ -133,7 +133,7 @@ def test_an_if_chain_on_one_stream_is_a_table(stages: list[str]) -> None:
     )
 )
 def test_fused_comparisons_and_skipped_streams_match_python(ticks: list[dict[str, Any]]) -> None:
-    m = Monitor(
+    m = SpecRunner(
         load_spec(
             "in a: Int\nin b: Float\nin c: Bool\nout x: Bool\nout y: Int\nout z: Int\n"
             "x = a == 1 && b < 2.5 || !c\ny = default(a[2], 7) + a\nz = 3 * 4 - 1\n"

@@ -15,9 +15,9 @@ from typing import Any
 
 import pytest
 import yaml
+from trust_checker.engine import SpecRunner
 from trust_checker.errors import SpecError, TrustError
 from trust_checker.lang import load_spec
-from trust_checker.monitor import Monitor
 from trust_checker.tracefile import read_trace, run_trace
 from trust_checker.values import console
 
@@ -68,12 +68,12 @@ def test_golden(case: dict[str, Any]) -> None:
         return
     got: list[str] = []
     with pytest.raises(TrustError) as err:
-        _run_collecting(Monitor(spec), ticks, got)
+        _run_collecting(SpecRunner(spec), ticks, got)
     assert case["error"] in str(err.value)
     assert got == _lines(case.get("expect"))
 
 
-def _run_collecting(m: Monitor, ticks: list[dict[str, object]], got: list[str]) -> None:
+def _run_collecting(m: SpecRunner, ticks: list[dict[str, object]], got: list[str]) -> None:
     """Like run_trace, but the lines printed before an error stay in ``got``."""
     for t in ticks:
         got += [f"{o.stream}[{o.tick}] = {console(o.value)}" for o in m.step(t)]

@@ -70,7 +70,7 @@ def test_forms_are_told_apart_by_shape() -> None:
     [
         (b"", "empty payload"),
         (b"   ", "empty payload"),
-        (b"{not json", "not JSON"),
+        (b"{not json", "payload: undecodable: JSON is malformed"),
         (b'{"Int": "x"}', "tagged value rejected"),
         (b'{"Int": 1.5}', "tagged value rejected"),
         (b'{"Int": 9223372036854775808}', "64 bits"),

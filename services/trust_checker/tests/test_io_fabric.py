@@ -25,12 +25,13 @@ from rap_schemas import (
 from rap_sdk import Sealer, ZenohConfig, ZenohFabric
 from rap_sdk.envelope import typed_decoder
 from rap_sdk.fabric import free_port
-from trust_checker.config import FabricConfig, FabricInput
+from trust_checker.config import FabricConfig, FabricInput, ServiceConfig
 from trust_checker.io.fabric import FabricTransport, event_stream_name
 from trust_checker.io.session import Session
+from trust_checker.service import open_service
 
 from services.trust_checker.tests.io_support import (
-    FakeMonitor,
+    FakeRunner,
     FakeSpec,
     RecordingSink,
     fake_loader,
@@ -92,28 +93,30 @@ def trace(
 
 @asynccontextmanager
 async def checker(
-    monitor: Any, config: FabricConfig | None = None
+    runner: Any, config: FabricConfig | None = None
 ) -> AsyncIterator[tuple[Session, FabricTransport, Peer, RecordingSink]]:
     port = free_port()
     sink = RecordingSink()
+    service_config = ServiceConfig(fabric=config or FabricConfig(system=SYS))
     async with (
         ZenohFabric(ZenohConfig(listen=[f"tcp/127.0.0.1:{port}"])) as fab,
         ZenohFabric(ZenohConfig(listen=[], connect=[f"tcp/127.0.0.1:{port}"])) as peer_fab,
+        open_service(
+            service_config, runner, fabric=fab, sinks=[sink], loader=fake_loader
+        ) as service,
         anyio.create_task_group() as tg,
     ):
-        session = Session(monitor, loader=fake_loader, sinks=[sink])
-        transport = FabricTransport(session, fab, config or FabricConfig(system=SYS))
+        transport = service.fabric
+        assert transport is not None
         peer = Peer(peer_fab)
         sub = peer_fab.subscribe(keys.pattern(SYS, keys.Kind.TRUST))
         tg.start_soon(peer.collect, sub)
-        await tg.start(session.run)
-        await tg.start(transport.run)
         for key in transport.key_exprs:
             probe = key.replace("**", "probe")
             await peer_fab.wait_matched(probe)
         await fab.wait_matched(keys.trust(SYS, "probe"))
         try:
-            yield session, transport, peer, sink
+            yield service.session, transport, peer, sink
         finally:
             sub.close()
             tg.cancel_scope.cancel()
@@ -142,8 +145,8 @@ async def test_trace_records_and_events_by_default() -> None:
         "verdict_plan",
         "handler",
     )
-    mon = FakeMonitor(FakeSpec(ins, ("s",)))
-    async with checker(mon) as (session, _transport, peer, _sink):
+    mon = FakeRunner(FakeSpec(ins, ("s",)))
+    async with checker(mon) as (session, transport, peer, _sink):
         await peer.send(keys.trace(SYS, "analysis"), trace("start"))
         await peer.send(
             keys.trace(SYS, "analysis"),
@@ -219,11 +222,11 @@ async def test_trace_records_and_events_by_default() -> None:
     assert all(isinstance(ts, int) and ts > 0 for _v, ts in mon.steps)
     assert [(o.stream, o.tick) for o in outs] == [("s", i) for i in range(7)]
     assert peer.sources == ["trust_checker"] * 7
-    assert session.stats.rejected == 0
+    assert transport.stats.rejections.total == 0
 
 
 async def test_a_message_setting_no_declared_input_is_not_a_tick() -> None:
-    mon = FakeMonitor(FakeSpec(("ev_new_plan",), ("s",)))
+    mon = FakeRunner(FakeSpec(("ev_new_plan",), ("s",)))
     async with checker(mon) as (session, _t, peer, sink):
         await peer.send(keys.trace(SYS, "analysis"), trace("start"))
         await peer.send(keys.event(SYS, "new-plan"), Empty(), cycle=None)
@@ -236,10 +239,10 @@ async def test_a_message_setting_no_declared_input_is_not_a_tick() -> None:
     assert len(sink.outs) == 1
 
 
-async def test_an_input_the_monitor_refuses_is_counted() -> None:
+async def test_an_input_the_runner_refuses_is_counted() -> None:
     explicit = {"x": FabricInput(keys.data(SYS, "pose"), field="x")}
     config = FabricConfig(system=SYS, inputs=explicit)  # one subscription: ordered
-    mon = FakeMonitor(FakeSpec(("x", "ev_go"), ("s",)))
+    mon = FakeRunner(FakeSpec(("x", "ev_go"), ("s",)))
     async with checker(mon, config) as (session, transport, peer, _sink):
         assert transport.key_exprs == [keys.system_pattern(SYS)]
         await peer.send(keys.data(SYS, "pose"), Pose2D(x=3.0, y=0.0, theta=0.0))
@@ -257,7 +260,7 @@ async def test_explicit_inputs_whole_body_or_one_field() -> None:
         "missing": FabricInput(keys.data(SYS, "pose"), field="nope"),
     }
     config = FabricConfig(system=SYS, inputs=explicit, default_inputs=False)
-    mon = FakeMonitor(FakeSpec(("ok", "missing", "bottom_in"), ("s",)))
+    mon = FakeRunner(FakeSpec(("ok", "missing", "bottom_in"), ("s",)))
     async with checker(mon, config) as (session, transport, peer, _sink):
         assert transport.key_exprs == [keys.event(SYS, "verdict"), keys.data(SYS, "pose")]
         verdict = Verdict(plan_uid=b"\x01" * 16, approved=False, legitimator="l", ts=1)
@@ -265,7 +268,10 @@ async def test_explicit_inputs_whole_body_or_one_field() -> None:
         await peer.send(keys.event(SYS, "verdict"), verdict)
         outs = await peer.wait(1)
         await session.wait_idle()
-    assert session.stats.rejected == 1  # the pose has no field "nope"
+    # the pose has no field "nope"
+    assert transport.stats.rejections.by_reason == {
+        "rap.PoseND/N: stream 'missing' reads field 'nope', which the body does not have": 1
+    }
     assert mon.steps[0][0] == {"ok": False}
     assert outs[0].value == 0
     assert outs[0].deferred is False
@@ -274,7 +280,7 @@ async def test_explicit_inputs_whole_body_or_one_field() -> None:
 async def test_bottom_is_published_as_deferred() -> None:
     explicit = {"a": FabricInput(keys.data(SYS, "a"), field="s")}
     config = FabricConfig(system=SYS, inputs=explicit, default_inputs=False)
-    mon = FakeMonitor(FakeSpec(("a",), ("s",)))
+    mon = FakeRunner(FakeSpec(("a",), ("s",)))
 
     class Text(msgspec.Struct, frozen=True):
         s: str
@@ -290,20 +296,20 @@ async def test_bottom_is_published_as_deferred() -> None:
 
 
 async def test_bad_samples_are_rejected_and_counted() -> None:
-    mon = FakeMonitor(FakeSpec(("ev_x",), ("s",)))
-    async with checker(mon) as (session, _t, peer, _sink):
+    mon = FakeRunner(FakeSpec(("ev_x",), ("s",)))
+    async with checker(mon) as (session, transport, peer, _sink):
         await peer.fabric.publish(keys.event(SYS, "x"), b"not an envelope")
         payload, _ = peer.sealer.seal(keys.trace(SYS, "n"), StageTrace.TYPE, b"\x01")
         await peer.fabric.publish(keys.trace(SYS, "n"), payload)
         await peer.send(keys.event(SYS, "x"), Empty())
         await peer.wait(1)
         await session.wait_idle()
-    assert session.stats.rejected == 2
+    assert transport.stats.rejections.total == 2
     assert len(mon.steps) == 1
 
 
 async def test_hot_swap_through_the_admin_queryable() -> None:
-    mon = FakeMonitor(FakeSpec(("ev_a",), ("s",)))
+    mon = FakeRunner(FakeSpec(("ev_a",), ("s",)))
     async with checker(mon) as (session, transport, peer, _sink):
         await peer.send(keys.event(SYS, "a"), Empty())
         await peer.wait(1)
@@ -338,27 +344,24 @@ async def test_hot_swap_through_the_admin_queryable() -> None:
     assert session.stats.swaps_rejected == 1
 
 
-# -- with the real monitor and parser ----------------------------------------------------
+# -- with the real runner and parser -----------------------------------------------------
 
 
-async def test_real_monitor_on_trace_records_and_swap() -> None:
+async def test_real_runner_on_trace_records_and_swap() -> None:
     from trust_checker.io.specs import load_text
-    from trust_checker.monitor import Monitor
 
     spec = "in ok: Bool\nin analyse_start: Str\nout failed: Bool\nfailed = !ok\n"
     port = free_port()
+    config = ServiceConfig(node="tc1", verdicts=False, fabric=FabricConfig(system=SYS))
     async with (
         ZenohFabric(ZenohConfig(listen=[f"tcp/127.0.0.1:{port}"])) as fab,
         ZenohFabric(ZenohConfig(listen=[], connect=[f"tcp/127.0.0.1:{port}"])) as peer_fab,
+        open_service(config, load_text(spec), fabric=fab),
         anyio.create_task_group() as tg,
     ):
-        session = Session(Monitor(load_text(spec)), loader=load_text)
-        transport = FabricTransport(session, fab, FabricConfig(system=SYS, node="tc1"))
         peer = Peer(peer_fab)
         sub = peer_fab.subscribe(keys.pattern(SYS, keys.Kind.TRUST))
         tg.start_soon(peer.collect, sub)
-        await tg.start(session.run)
-        await tg.start(transport.run)
         await peer_fab.wait_matched(keys.trace(SYS, "analysis"))
         await fab.wait_matched(keys.trust(SYS, "failed"))
         await peer.send(keys.trace(SYS, "analysis"), trace("start"))

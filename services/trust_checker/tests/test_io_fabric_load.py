@@ -12,12 +12,12 @@ from rap_schemas import Stage, StageTrace, keys
 from rap_sdk import Sealer
 from rap_sdk.fabric.memory import MemoryBus, MemoryFabric
 from rap_sdk.inbox import InboxStats
-from trust_checker.config import FabricConfig
-from trust_checker.io import fabric as fabric_io
-from trust_checker.io.fabric import FabricTransport
+from trust_checker.config import FabricConfig, ServiceConfig
+from trust_checker.io.fabric import MAX_BATCH, FabricTransport
 from trust_checker.io.session import Session
+from trust_checker.service import open_service
 
-from services.trust_checker.tests.io_support import FakeMonitor, FakeSpec, fake_loader
+from services.trust_checker.tests.io_support import FakeRunner, FakeSpec, fake_loader
 
 pytestmark = pytest.mark.anyio
 
@@ -37,28 +37,24 @@ def record(i: int) -> StageTrace:
     )
 
 
-async def burst(n: int, config: FabricConfig) -> tuple[FakeMonitor, Session, FabricTransport]:
+async def burst(n: int, config: FabricConfig) -> tuple[FakeRunner, Session, FabricTransport]:
     """``n`` trace records published in one go (no yield between them), then taken."""
-    mon = FakeMonitor(FakeSpec(("cycle",), ("s",)))
+    mon = FakeRunner(FakeSpec(("cycle",), ("s",)))
     bus = MemoryBus()
     sealer = Sealer("analysis")
     key = keys.trace(SYS, "analysis")
     async with (
         MemoryFabric(bus=bus) as robot,
         MemoryFabric(bus=bus) as fab,
-        anyio.create_task_group() as tg,
+        open_service(ServiceConfig(fabric=config), mon, fabric=fab, loader=fake_loader) as service,
     ):
-        session = Session(mon, loader=fake_loader)
-        transport = FabricTransport(session, fab, config)
-        await tg.start(session.run)
-        await tg.start(transport.run)
+        assert service.fabric is not None
         for i in range(n):
             await robot.publish(key, sealer.seal_message(key, record(i))[0])
         with anyio.fail_after(10):
             await anyio.wait_all_tasks_blocked()  # the transport took all it could
-            await session.wait_idle()
-        tg.cancel_scope.cancel()
-    return mon, session, transport
+            await service.session.wait_idle()
+    return mon, service.session, service.fabric
 
 
 async def test_a_burst_is_taken_whole_in_order_in_batches(
@@ -72,12 +68,12 @@ async def test_a_burst_is_taken_whole_in_order_in_batches(
         await real(self, arrivals)  # type: ignore[arg-type]
 
     monkeypatch.setattr(Session, "submit_many", spy)
-    n = 2 * fabric_io._BATCH + 88
+    n = 2 * MAX_BATCH + 88
     mon, session, transport = await burst(n, FabricConfig(system=SYS))
     assert [v["cycle"] for v, _ in mon.steps] == [i.to_bytes(16, "big").hex() for i in range(n)]
     assert session.stats.ticks == n
     assert transport.stats.lost == 0
-    assert sizes == [fabric_io._BATCH, fabric_io._BATCH, 88]  # three hand-offs, not n
+    assert sizes == [MAX_BATCH, MAX_BATCH, 88]  # three hand-offs, not n
 
 
 async def test_samples_dropped_by_a_full_inbox_are_counted_and_logged(
@@ -100,16 +96,19 @@ async def test_losses_are_logged_at_most_once_a_second_and_all_counted(
         key_expr = "rap/load/**"
         stats = InboxStats()
 
-    session = Session(FakeMonitor(FakeSpec(("a",), ("s",))), loader=fake_loader)
-    async with MemoryFabric() as fab, anyio.create_task_group() as tg:
-        await tg.start(session.run)
-        transport = FabricTransport(session, fab, FabricConfig(system=SYS))
+    config = ServiceConfig(fabric=FabricConfig(system=SYS))
+    runner = FakeRunner(FakeSpec(("a",), ("s",)))
+    async with (
+        MemoryFabric() as fab,
+        open_service(config, runner, fabric=fab, loader=fake_loader) as service,
+    ):
+        transport = service.fabric
+        assert transport is not None
         sub = Sub()
         with caplog.at_level(logging.ERROR, logger="trust_checker.io.fabric"):
             for dropped in (3, 3, 10, 12):
                 sub.stats.dropped = dropped
                 transport._gaps(sub)  # type: ignore[arg-type]
-        session.close()
     assert transport.stats.lost == 12
     (msg,) = [r.getMessage() for r in caplog.records]  # the later ones within the second
     assert msg.startswith("fabric: 3 input samples lost (3 in all")

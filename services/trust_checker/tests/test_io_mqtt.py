@@ -12,14 +12,15 @@ from typing import Any
 import aiomqtt
 import anyio
 import pytest
-from trust_checker.config import MqttConfig, TopicMap
+from trust_checker.config import MqttConfig, ServiceConfig, TopicMap
 from trust_checker.io.mqtt import MqttTransport
 from trust_checker.io.session import Session
-from trust_checker.io.ticks import MESSAGE, TickPolicy
+from trust_checker.service import open_service
 
 from services.trust_checker.tests.io_support import (
-    FakeMonitor,
+    FakeRunner,
     FakeSpec,
+    Mosquitto,
     fake_loader,
     mosquitto,
 )
@@ -57,35 +58,33 @@ class Peer:
 @asynccontextmanager
 async def checker(
     tmp_path: Path,
-    monitor: Any,
+    runner: Any,
     *,
     config: dict[str, Any] | None = None,
-    policy: TickPolicy = MESSAGE,
+    tick: str = "message",
     loader: Any = fake_loader,
     listen: tuple[str, ...] = ("#",),
 ) -> AsyncIterator[tuple[Session, MqttTransport, Peer]]:
     async with mosquitto(tmp_path) as broker:
         cfg = MqttConfig(port=broker.port, timeout=5.0, **(config or {}))
-        session = Session(monitor, loader=loader, policy=policy)
-        transport = MqttTransport(session, cfg)
         async with (
+            open_service(ServiceConfig(tick=tick, mqtt=cfg), runner, loader=loader) as service,
             aiomqtt.Client("127.0.0.1", broker.port, timeout=5.0) as client,
             anyio.create_task_group() as tg,
         ):
+            assert service.mqtt is not None
             peer = Peer(client)
             for topic in listen:
                 await client.subscribe(topic)
             tg.start_soon(peer.collect)
-            await tg.start(session.run)
-            await tg.start(transport.run)
             try:
-                yield session, transport, peer
+                yield service.session, service.mqtt, peer
             finally:
                 tg.cancel_scope.cancel()
 
 
 async def test_inputs_in_all_three_forms_and_plain_outputs(tmp_path: Path) -> None:
-    mon = FakeMonitor(FakeSpec(("a",), ("s",)))
+    mon = FakeRunner(FakeSpec(("a",), ("s",)))
     async with checker(tmp_path, mon, listen=("s",)) as (_session, transport, peer):
         await peer.send("a", "1")
         await peer.send("a", '{"Int": 2}')
@@ -102,9 +101,9 @@ async def test_inputs_in_all_three_forms_and_plain_outputs(tmp_path: Path) -> No
 
 
 async def test_tagged_outputs_and_bad_payloads_are_rejected(tmp_path: Path) -> None:
-    mon = FakeMonitor(FakeSpec(("a",), ("s",)))
+    mon = FakeRunner(FakeSpec(("a",), ("s",)))
     cfg = {"tagged": True}
-    async with checker(tmp_path, mon, config=cfg, listen=("s",)) as (session, _t, peer):
+    async with checker(tmp_path, mon, config=cfg, listen=("s",)) as (_s, transport, peer):
         await peer.send("a", "{nope")
         await peer.send("a", '{"Int": "seven"}')
         await peer.send("a", "")
@@ -112,11 +111,18 @@ async def test_tagged_outputs_and_bad_payloads_are_rejected(tmp_path: Path) -> N
         await peer.send("a", '"bottom"')
         await peer.wait(2)
     assert peer.on("s") == [{"Int": 7}, "Unknown"]
-    assert session.stats.rejected == 3
+    rejections = transport.stats.rejections
+    assert rejections.total == 3
+    assert sorted(rejections.by_reason) == [
+        'empty payload - send one JSON value: N, {"Int": N} or {"value": N}',
+        "payload: undecodable: JSON is malformed: object keys must be strings",
+        "tagged value rejected: not a tagged value: {'Int': 'seven'} - write e.g. "
+        '{"Int": N}, {"Str": "a"}, "Unit" or "Unknown"',
+    ]
 
 
 async def test_topic_map_for_inputs_and_outputs(tmp_path: Path) -> None:
-    mon = FakeMonitor(FakeSpec(("a", "b"), ("s",)))
+    mon = FakeRunner(FakeSpec(("a", "b"), ("s",)))
     cfg = {
         "topics": {
             "a": TopicMap("robot/+/speed"),
@@ -133,7 +139,7 @@ async def test_topic_map_for_inputs_and_outputs(tmp_path: Path) -> None:
 
 
 async def test_hot_swap_carries_history_and_follows_the_new_inputs(tmp_path: Path) -> None:
-    mon = FakeMonitor(FakeSpec(("a",), ("s",)))
+    mon = FakeRunner(FakeSpec(("a",), ("s",)))
     listen = ("s", "t", "trust/status")
     async with checker(tmp_path, mon, listen=listen) as (session, _t, peer):
         await peer.send("a", "5")
@@ -152,7 +158,7 @@ async def test_hot_swap_carries_history_and_follows_the_new_inputs(tmp_path: Pat
 
 
 async def test_bad_swap_is_refused_and_the_old_spec_keeps_running(tmp_path: Path) -> None:
-    mon = FakeMonitor(FakeSpec(("a",), ("s",)))
+    mon = FakeRunner(FakeSpec(("a",), ("s",)))
     listen = ("s", "trust/status")
     async with checker(tmp_path, mon, listen=listen) as (session, _t, peer):
         await peer.send("trust/spec", json.dumps({"spec": "in a\ngarbage\n", "path": "n.dsrv"}))
@@ -171,9 +177,8 @@ async def test_bad_swap_is_refused_and_the_old_spec_keeps_running(tmp_path: Path
 
 
 async def test_window_policy_over_mqtt(tmp_path: Path) -> None:
-    mon = FakeMonitor(FakeSpec(("a", "b"), ("s",)))
-    policy = TickPolicy("window", 300_000_000)
-    async with checker(tmp_path, mon, policy=policy, listen=("s",)) as (_s, _t, peer):
+    mon = FakeRunner(FakeSpec(("a", "b"), ("s",)))
+    async with checker(tmp_path, mon, tick="window:300ms", listen=("s",)) as (_s, _t, peer):
         await peer.send("a", "1")
         await peer.send("b", "2")
         await peer.send("a", "3")
@@ -189,13 +194,12 @@ async def test_real_monitor_hot_swap_keeps_history_and_refuses_a_bad_spec(
     tmp_path: Path,
 ) -> None:
     from trust_checker.io.specs import load_text
-    from trust_checker.monitor import Monitor
 
     first = "in x: Int\nout prev: Int\nprev = x[-1, 0]\n"
     second = "in x: Int\nout sum: Int\nsum = x + default(x[1], 0)\n"
-    mon = Monitor(load_text(first))
     listen = ("prev", "sum", "trust/status")
-    async with checker(tmp_path, mon, loader=load_text, listen=listen) as (session, _t, peer):
+    spec = load_text(first)  # open_service runs it with a SpecRunner
+    async with checker(tmp_path, spec, loader=load_text, listen=listen) as (session, _t, peer):
         await peer.send("x", "1")
         await peer.send("x", '{"Int": 2}')
         await peer.wait(2)
@@ -222,8 +226,7 @@ async def test_real_monitor_hot_swap_keeps_history_and_refuses_a_bad_spec(
 
 
 async def test_reconnects_after_the_broker_restarts_and_keeps_history(tmp_path: Path) -> None:
-    mon = FakeMonitor(FakeSpec(("a",), ("s",)))
-    session = Session(mon, loader=fake_loader)
+    mon = FakeRunner(FakeSpec(("a",), ("s",)))
 
     async def exchange(port: int, value: str) -> Any:
         async with aiomqtt.Client("127.0.0.1", port, timeout=5.0) as client:
@@ -234,16 +237,18 @@ async def test_reconnects_after_the_broker_restarts_and_keeps_history(tmp_path: 
                     return json.loads(bytes(message.payload))
         raise AssertionError("no output")
 
+    first = Mosquitto(tmp_path)
+    port = first.port
+    config = ServiceConfig(mqtt=MqttConfig(port=port, timeout=5.0))
     async with anyio.create_task_group() as tg:
-        async with mosquitto(tmp_path) as broker:
-            port = broker.port
-            transport = MqttTransport(session, MqttConfig(port=port, timeout=5.0))
-            await tg.start(session.run)
-            await tg.start(transport.run)
+        await tg.start(first.run)
+        async with open_service(config, mon, loader=fake_loader) as service:
+            transport = service.mqtt
+            assert transport is not None
             assert await exchange(port, "5") == {"value": 5}
-        async with mosquitto(tmp_path, port):
-            with anyio.fail_after(10):
-                while transport.stats.connects < 2:
-                    await transport.connected.wait()
-            assert await exchange(port, "2") == {"value": 7}  # the history lived on
-            tg.cancel_scope.cancel()
+            await first.stop()
+            async with mosquitto(tmp_path, port):
+                with anyio.fail_after(10):
+                    while transport.stats.connects < 2:
+                        await transport.connected.wait()
+                assert await exchange(port, "2") == {"value": 7}  # the history lived on

@@ -1,12 +1,12 @@
-"""Tick policies and the session that owns the monitor (with a hand-written monitor)."""
+"""Tick policies and the session that owns the spec runner (with a hand-written runner)."""
 
 from __future__ import annotations
 
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
-import anyio
 import pytest
+from trust_checker.config import ServiceConfig
 from trust_checker.io.session import Session
 from trust_checker.io.ticks import (
     MESSAGE,
@@ -16,10 +16,11 @@ from trust_checker.io.ticks import (
     parse_duration,
     parse_tick_policy,
 )
+from trust_checker.service import open_service
 from trust_checker.values import BOTTOM
 
 from services.trust_checker.tests.io_support import (
-    FakeMonitor,
+    FakeRunner,
     FakeSpec,
     RecordingSink,
     fake_loader,
@@ -96,23 +97,22 @@ def test_merge_keeps_the_last_value_per_stream_and_the_first_time() -> None:
 
 @asynccontextmanager
 async def running(
-    monitor: FakeMonitor, policy: TickPolicy = MESSAGE, clock: StepClock | None = None
+    runner: FakeRunner, tick: str = "message", clock: StepClock | None = None
 ) -> AsyncIterator[tuple[Session, RecordingSink]]:
+    """A checker with no transport (fed through its session), as open_service wires it."""
     sink = RecordingSink()
-    session = Session(monitor, loader=fake_loader, sinks=[sink], policy=policy, clock=clock)
-    async with anyio.create_task_group() as tg:
-        await tg.start(session.run)
-        try:
-            yield session, sink
-        finally:
-            session.close()
+    config = ServiceConfig(tick=tick)
+    async with open_service(
+        config, runner, sinks=[sink], loader=fake_loader, clock=clock
+    ) as service:
+        yield service.session, sink
 
 
 pytestmark = pytest.mark.anyio
 
 
 async def test_one_message_one_tick_with_timestamps() -> None:
-    mon = FakeMonitor(FakeSpec(("a", "b"), ("s",)))
+    mon = FakeRunner(FakeSpec(("a", "b"), ("s",)))
     clock = StepClock()
     async with running(mon, clock=clock) as (session, sink):
         for i, name in enumerate(["a", "b", "a"]):
@@ -127,19 +127,19 @@ async def test_one_message_one_tick_with_timestamps() -> None:
 
 
 async def test_a_message_setting_no_input_is_not_a_tick() -> None:
-    mon = FakeMonitor(FakeSpec(("a",), ("s",)))
+    mon = FakeRunner(FakeSpec(("a",), ("s",)))
     async with running(mon) as (session, sink):
         await session.submit(Arrival({"zzz": 1}, 1, "x"))
         await session.submit(Arrival({"a": 2, "zzz": 5}, 2, "x"))
         await session.wait_idle()
-    assert mon.steps == [({"a": 2}, 2)]  # only declared inputs reach the monitor
+    assert mon.steps == [({"a": 2}, 2)]  # only declared inputs reach the runner
     assert session.stats.ignored == 1
     assert [o.value for o in sink.outs] == [2]
 
 
 async def test_window_merges_a_burst_into_one_atomic_tick() -> None:
-    mon = FakeMonitor(FakeSpec(("a", "b"), ("s",)))
-    async with running(mon, TickPolicy("window", 300_000_000)) as (session, sink):
+    mon = FakeRunner(FakeSpec(("a", "b"), ("s",)))
+    async with running(mon, "window:300ms") as (session, sink):
         await session.submit(Arrival({"a": 1}, 100, "a"))
         await session.submit(Arrival({"b": 10}, 200, "b"))
         await session.submit(Arrival({"a": 2}, 300, "a"))
@@ -151,7 +151,7 @@ async def test_window_merges_a_burst_into_one_atomic_tick() -> None:
 
 
 async def test_bad_input_and_failing_tick_are_counted_and_the_next_one_works() -> None:
-    mon = FakeMonitor(FakeSpec(("a",), ("s",)))
+    mon = FakeRunner(FakeSpec(("a",), ("s",)))
     async with running(mon) as (session, sink):
         await session.submit(Arrival({"a": 1.5}, 1, "a"))  # the fake takes Int only
         await session.submit(Arrival({"a": "boom"}, 2, "a"))
@@ -163,7 +163,7 @@ async def test_bad_input_and_failing_tick_are_counted_and_the_next_one_works() -
 
 
 async def test_bottom_reaches_the_sinks() -> None:
-    mon = FakeMonitor(FakeSpec(("a",), ("s",)))
+    mon = FakeRunner(FakeSpec(("a",), ("s",)))
     async with running(mon) as (session, sink):
         await session.submit(Arrival({"a": "bottom"}, 1, "a"))
         await session.wait_idle()
@@ -171,7 +171,7 @@ async def test_bottom_reaches_the_sinks() -> None:
 
 
 async def test_swap_carries_history_and_a_bad_spec_keeps_the_old_one() -> None:
-    mon = FakeMonitor(FakeSpec(("a",), ("s",)))
+    mon = FakeRunner(FakeSpec(("a",), ("s",)))
     async with running(mon) as (session, sink):
         await session.submit(Arrival({"a": 5}, 1, "a"))
         bad = await session.request_swap("in a\nnonsense here\n", path="new.dsrv")
@@ -192,8 +192,8 @@ async def test_swap_carries_history_and_a_bad_spec_keeps_the_old_one() -> None:
 
 
 async def test_a_swap_ends_a_window_burst_after_its_tick() -> None:
-    mon = FakeMonitor(FakeSpec(("a",), ("s",)))
-    async with running(mon, TickPolicy("window", 2_000_000_000)) as (session, sink):
+    mon = FakeRunner(FakeSpec(("a",), ("s",)))
+    async with running(mon, "window:2s") as (session, sink):
         await session.submit(Arrival({"a": 1}, 1, "a"))
         status = await session.request_swap("in a\nout t\n", timeout=1.0)
         assert status.ok
@@ -202,7 +202,7 @@ async def test_a_swap_ends_a_window_burst_after_its_tick() -> None:
 
 
 async def test_periodic_outputs_tick_without_inputs() -> None:
-    mon = FakeMonitor(FakeSpec(("a",), ("s",), period_ns=20_000_000))
+    mon = FakeRunner(FakeSpec(("a",), ("s",), period_ns=20_000_000))
     async with running(mon) as (session, sink):
         await sink.wait_for(3, timeout=5)
     assert session.stats.periodic_ticks >= 3
@@ -212,16 +212,8 @@ async def test_periodic_outputs_tick_without_inputs() -> None:
     assert periodic == sorted(periodic)
 
 
-async def test_rejections_are_counted() -> None:
-    mon = FakeMonitor(FakeSpec(("a",), ("s",)))
-    async with running(mon) as (session, _sink):
-        session.reject("t/a", "not JSON")
-        session.reject("t/a", "not JSON")
-    assert session.stats.rejected == 2
-
-
 async def test_a_batch_is_one_arrival_each_in_order() -> None:
-    mon = FakeMonitor(FakeSpec(("a",), ("s",)))
+    mon = FakeRunner(FakeSpec(("a",), ("s",)))
     async with running(mon) as (session, sink):
         await session.submit_many([Arrival({"a": i}, i, "a") for i in range(1, 5)])
         await session.submit_many([Arrival({}, 9, "x")])  # sets nothing: not submitted
@@ -233,8 +225,8 @@ async def test_a_batch_is_one_arrival_each_in_order() -> None:
 
 
 async def test_a_window_burst_spans_batches_and_a_swap_follows_the_batch() -> None:
-    mon = FakeMonitor(FakeSpec(("a", "b"), ("s",)))
-    async with running(mon, TickPolicy("window", 300_000_000)) as (session, sink):
+    mon = FakeRunner(FakeSpec(("a", "b"), ("s",)))
+    async with running(mon, "window:300ms") as (session, sink):
         await session.submit_many([Arrival({"a": 1}, 100, "a"), Arrival({"b": 10}, 200, "b")])
         await session.submit_many([Arrival({"a": 2}, 300, "a")])
         status = await session.request_swap("in a b\nout t\n", timeout=2.0)

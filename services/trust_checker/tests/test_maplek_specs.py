@@ -1,5 +1,5 @@
 """The shipped MAPLE-K specs against the lidar-occlusion loop, in this process on the
-memory fabric: one checker per spec (a :class:`Session` fed by a :class:`FabricTransport`
+memory fabric: one checker per spec (``open_service`` with a fabric transport
 subscribed to the loop's system, as ``python -m trust_checker SPEC --fabric SYSTEM``
 runs it). On the healthy loop every output stays true; each planted fault (a variant of
 the loop's nodes built here, the example untouched) turns the right spec false. Last,
@@ -8,6 +8,7 @@ until the verdict is true again."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 from collections.abc import AsyncIterator, Awaitable, Callable, Collection, Sequence
@@ -18,7 +19,7 @@ from typing import Any
 import anyio
 import msgspec
 import pytest
-from knowledge.app import open_service
+from knowledge.app import open_service as open_knowledge
 from knowledge.config import KnowledgeConfig
 from lidar_occlusion.nodes import ANOMALY, DIRECTIONS, HANDLING, LASER_SCAN, LIDAR_MASK, build
 from lidar_occlusion.planning import LegitimacyConfig, PlanConfig
@@ -39,12 +40,11 @@ from rap_sdk.gate import PLAN_REJECTED, ApprovalGate, TrustGuard
 from rap_sdk.node import EVENT_POLICY
 from rap_sdk.testing import Harness, Record
 from sim_world.world import Occlusion, default_world_path, load_world
-from trust_checker.config import FabricConfig
-from trust_checker.io.fabric import FabricTransport
+from trust_checker.config import FabricConfig, ServiceConfig
 from trust_checker.io.ports import OutputLike
 from trust_checker.io.session import Session
 from trust_checker.io.specs import load_text
-from trust_checker.monitor import Monitor
+from trust_checker.service import open_service
 from trust_checker.specs import MAPLEK_OUTPUTS, maplek_specs
 
 pytestmark = pytest.mark.anyio
@@ -60,12 +60,17 @@ scan = occluded_scan
 
 @dataclass
 class Checker:
-    """One spec running on the fabric; ``values`` are its output's verdicts in order."""
+    """One spec running on the fabric (a sink of its session); ``values`` are its
+    output's verdicts in order."""
 
     name: str
-    session: Session
-    transport: FabricTransport
+    session: Session | None = None
     values: list[object] = field(default_factory=list)
+
+    @property
+    def stats(self) -> Any:
+        assert self.session is not None
+        return self.session.stats
 
     async def outputs(self, outs: Sequence[OutputLike]) -> None:
         self.values += [o.value for o in outs]
@@ -80,17 +85,17 @@ async def checking(
 ) -> AsyncIterator[dict[str, Checker]]:
     specs = maplek_specs()
     checkers: dict[str, Checker] = {}
-    async with anyio.create_task_group() as tg:
+    async with contextlib.AsyncExitStack() as stack:
         for name in sorted(names if names is not None else specs):
-            session = Session(Monitor(load_text(specs[name], name)), loader=load_text)
-            config = FabricConfig(system=system, node=f"trust_{name}")
-            checker = Checker(name, session, FabricTransport(session, fabric, config))
-            session.sinks.append(checker)
-            await tg.start(session.run)
-            await tg.start(checker.transport.run)
-            checkers[name] = checker
+            checker = checkers[name] = Checker(name)
+            config = ServiceConfig(
+                node=f"trust_{name}", verdicts=False, fabric=FabricConfig(system=system)
+            )
+            service = await stack.enter_async_context(
+                open_service(config, load_text(specs[name], name), fabric=fabric, sinks=[checker])
+            )
+            checker.session = service.session
         yield checkers
-        tg.cancel_scope.cancel()
 
 
 async def settle() -> None:
@@ -112,7 +117,7 @@ def went_false(checkers: dict[str, Checker]) -> set[str]:
 async def running(nodes: Sequence[Node]) -> AsyncIterator[tuple[Harness, dict[str, Checker]]]:
     async with Harness(system=SYS) as h:
         checkers = await h.hold(checking(h.fabric))
-        await h.hold(open_service(KnowledgeConfig(system=SYS), fabric=h.fabric))
+        await h.hold(open_knowledge(KnowledgeConfig(system=SYS), fabric=h.fabric))
         await h.start(*nodes)
         yield h, checkers
 
@@ -263,8 +268,8 @@ async def test_every_spec_stays_true_on_the_healthy_loop() -> None:
         assert len(h.of(keys.Kind.EVENT, ANOMALY)) == 3
         assert went_false(checkers) == set()
         # they did look: every spec took ticks of the loop's records
-        assert all(c.session.stats.ticks >= 3 for c in checkers.values())
-        assert checkers["stage_order"].session.stats.ticks == len(h.traces())
+        assert all(c.stats.ticks >= 3 for c in checkers.values())
+        assert checkers["stage_order"].stats.ticks == len(h.traces())
 
 
 async def test_every_spec_stays_true_over_a_simulated_run() -> None:
@@ -277,7 +282,7 @@ async def test_every_spec_stays_true_over_a_simulated_run() -> None:
     assert m["plans_executed"] == 2
     assert m["lockstep_timeouts"] == 0
     assert went_false(checkers) == set()
-    assert checkers["stage_order"].session.stats.ticks > 100  # 12 s of scans at 5 Hz
+    assert checkers["stage_order"].stats.ticks > 100  # 12 s of scans at 5 Hz
 
 
 # -- planted faults --------------------------------------------------------------------

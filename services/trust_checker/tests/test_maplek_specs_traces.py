@@ -7,9 +7,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from trust_checker.engine import SpecRunner
 from trust_checker.lang import ast, load_spec
 from trust_checker.lang.check import children
-from trust_checker.monitor import Monitor
 from trust_checker.specs import ANOMALY_DEADLINE_NS, MAPLEK_OUTPUTS, maplek_specs
 from trust_checker.tracefile import read_trace
 
@@ -19,7 +19,7 @@ TRACES = Path(__file__).parent / "maplek_traces"
 def verdicts(name: str, trace: str) -> list[object]:
     """The spec's one output at each tick of the trace file (``t_ms`` in a tick is its
     time, not an input; a tick with only ``t_ms`` is a timer tick)."""
-    mon = Monitor(load_spec(maplek_specs()[name]))
+    mon = SpecRunner(load_spec(maplek_specs()[name]))
     (out,) = mon.outputs
     ticks = read_trace((TRACES / trace).read_text(), trace)
     values: list[object] = []
@@ -90,7 +90,7 @@ def test_the_deadline_constant_matches_the_spec() -> None:
 
 
 def test_the_deadline_is_missed_without_any_input_only_by_timer_ticks() -> None:
-    mon = Monitor(load_spec(maplek_specs()["anomaly_deadline"]))
+    mon = SpecRunner(load_spec(maplek_specs()["anomaly_deadline"]))
     assert [o.value for o in mon.step({"ev_anomaly": "c1"}, 1_000)] == [True]
     due = mon.next_due(1_000)
     assert due == 1_000 + 100_000_000  # @ 10Hz
@@ -105,8 +105,8 @@ def test_the_deadline_is_missed_without_any_input_only_by_timer_ticks() -> None:
 
 def test_memory_stays_bounded_over_many_cycles() -> None:
     """stage_order and execute_approved forget all but their last KEEP (256) cycles."""
-    order = Monitor(load_spec(maplek_specs()["stage_order"]))
-    approved = Monitor(load_spec(maplek_specs()["execute_approved"]))
+    order = SpecRunner(load_spec(maplek_specs()["stage_order"]))
+    approved = SpecRunner(load_spec(maplek_specs()["execute_approved"]))
     for i in range(600):
         c = f"c{i}"
         for stage in ("monitor", "analyse"):

@@ -12,8 +12,8 @@ from typing import Any
 
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from trust_checker.engine import Output, SpecRunner
 from trust_checker.lang import load_spec
-from trust_checker.monitor import Monitor, Output
 from trust_checker.values import BOTTOM
 
 SETTINGS = settings(max_examples=60, deadline=None)
@@ -59,7 +59,7 @@ ticks_st = st.lists(
 )
 
 
-def _run(m: Monitor, ticks: list[dict[str, Any]]) -> list[Output]:
+def _run(m: SpecRunner, ticks: list[dict[str, Any]]) -> list[Output]:
     out: list[Output] = []
     for t in ticks:
         out += m.step(t)
@@ -70,9 +70,9 @@ def _run(m: Monitor, ticks: list[dict[str, Any]]) -> list[Output]:
 @given(ticks=ticks_st, data=st.data())
 def test_swap_to_the_same_spec_changes_nothing(ticks: list[dict[str, Any]], data: Any) -> None:
     k = data.draw(st.integers(0, len(ticks)), label="split")
-    whole = Monitor(STATEFUL)
+    whole = SpecRunner(STATEFUL)
     expected = _run(whole, ticks) + whole.finish()
-    first = Monitor(STATEFUL)
+    first = SpecRunner(STATEFUL)
     got = _run(first, ticks[:k])
     second = first.swap(STATEFUL)
     got += _run(second, ticks[k:]) + second.finish()
@@ -96,7 +96,7 @@ def _held(xs: list[int | None]) -> list[int | None]:
 def test_sum_holds_both_operands(xs: list[int | None], ys: list[int | None]) -> None:
     n = min(len(xs), len(ys))
     xs, ys = xs[:n], ys[:n]
-    m = Monitor(load_spec("in x: Int\nin y: Int\nout z: Int\nz = x + y\n"))
+    m = SpecRunner(load_spec("in x: Int\nin y: Int\nout z: Int\nz = x + y\n"))
     ticks = [
         {k: v for k, v in (("x", a), ("y", b)) if v is not None}
         for a, b in zip(xs, ys, strict=True)
@@ -114,7 +114,7 @@ def test_sum_holds_both_operands(xs: list[int | None], ys: list[int | None]) -> 
 @SETTINGS
 @given(xs=gappy_ints, k=st.integers(1, 3))
 def test_offset_is_k_deferred_then_the_held_value(xs: list[int | None], k: int) -> None:
-    m = Monitor(load_spec(f"in x: Int\nin w: Int\nout y: Int\ny = x[{k}]\n"))
+    m = SpecRunner(load_spec(f"in x: Int\nin w: Int\nout y: Int\ny = x[{k}]\n"))
     ticks = [{"x": v} if v is not None else {"w": 0} for v in xs]
     got = [(o.tick, o.value) for o in _run(m, ticks) + m.finish()]
     held = _held(xs)
@@ -128,7 +128,7 @@ def test_offset_is_k_deferred_then_the_held_value(xs: list[int | None], k: int) 
 @SETTINGS
 @given(xs=gappy_ints, d=st.integers(-3, 3))
 def test_d52_default_offset(xs: list[int | None], d: int) -> None:
-    m = Monitor(load_spec(f"in x: Int\nin w: Int\nout y: Int\ny = x[-1, {d}]\n"))
+    m = SpecRunner(load_spec(f"in x: Int\nin w: Int\nout y: Int\ny = x[-1, {d}]\n"))
     ticks = [{"x": v} if v is not None else {"w": 0} for v in xs]
     got = [o.value for o in _run(m, ticks) + m.finish()]
     held = [None, *_held(xs)]
@@ -138,7 +138,7 @@ def test_d52_default_offset(xs: list[int | None], d: int) -> None:
 @SETTINGS
 @given(xs=gappy_ints)
 def test_bare_reference_ticks_only_with_its_stream(xs: list[int | None]) -> None:
-    m = Monitor(load_spec("in x: Int\nin w: Int\nout c: Int\nc = x\n"))
+    m = SpecRunner(load_spec("in x: Int\nin w: Int\nout c: Int\nc = x\n"))
     ticks = [{"x": v} if v is not None else {"w": 0} for v in xs]
     got = [(o.tick, o.value) for o in _run(m, ticks) + m.finish()]
     assert got == [(t, v) for t, v in enumerate(xs) if v is not None]

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import pytest
-from trust_checker.errors import InputError
+from trust_checker.errors import EvalError, InputError
 from trust_checker.lang import load_spec
-from trust_checker.tracefile import read_trace, run_trace
+from trust_checker.tracefile import iter_trace, load_trace, read_trace, run_trace
 from trust_checker.values import UNIT, MapV, StructV, TupleV
 
 
@@ -57,7 +57,7 @@ def test_literal_values(literal: str, value: object) -> None:
         ("1: x = 1\n1: x = 2\n", "t.trace:2:1: tick 1 comes after tick 1"),
         ("1: x = 1\n0: x = 2\n", "t.trace:2:1: tick 0 comes after tick 1"),
         ("x = 1\n", "t.trace:1:1: expected 'N: name = value'"),
-        ("0: x = 1\ny = 2\n", "t.trace:2:1: expected 'N: name = value' to open a tick (lines"),
+        ("0: x = 1\ny = 2\n", "t.trace:2:1: expected 'N: name = value' to open a tick - lines"),
         ("0: x = 1\n   x = 2\n", "t.trace:2:4: 'x' is given twice in tick 0"),
         ("0: x == 1\n", "t.trace:1:4: expected 'name = value'"),
         ("0: x = y + 1\n", "t.trace:1:10: a trace value must be a literal"),
@@ -87,3 +87,16 @@ def test_run_trace_rejects_a_bad_value() -> None:
     spec = load_spec("in x: Int\nout y: Int\ny = x\n")
     with pytest.raises(InputError, match="input 'x' at tick 1: expected Int, got Bool"):
         run_trace(spec, read_trace("0: x = 1\n1: x = true\n"))
+
+
+def test_iter_trace_gives_each_tick_before_the_one_that_fails() -> None:
+    spec = load_spec("in x: Int\nout y: Int\ny = 10 / x\n")
+    trace = load_trace("// a trace\n0: x = 5\n2: x = 0\n3: x = 1\n", "t.trace")
+    assert trace.lines == [2, 0, 3, 4]
+    assert trace.where("t.trace", 2) == "t.trace:3:1"
+    assert trace.where("t.trace", 1) == "t.trace"  # a tick no block gives
+    ticks = iter_trace(spec, trace.ticks)
+    assert [(o.stream, o.value) for o in next(ticks)] == [("y", 2)]
+    assert [(o.stream, o.value) for o in next(ticks)] == [("y", 2)]  # held
+    with pytest.raises(EvalError, match=r"Int division by zero: 10 / 0 .* in 'y' at tick 2"):
+        next(ticks)

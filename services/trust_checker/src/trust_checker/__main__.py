@@ -5,9 +5,14 @@
     python -m trust_checker spec.dsrv --mqtt 127.0.0.1:1883 [--topics JSON] [--tagged]
     python -m trust_checker spec.dsrv --fabric SYSTEM [--connect EP ...] [--listen EP ...]
 
-A spec with errors prints every problem (file:line:col, the text, a hint) and exits with
-code 2 without starting. Live modes print each output as a console line
-(``name[tick] = Int(7)``) and run until SIGTERM or SIGINT, then exit 0.
+A mistake on the command line or in a file (a bad option value, a bad JSON map, a spec
+or trace file that is missing or not text, a bad endpoint or system name) is one line on
+stderr, ``error: [file:line:col: ]what - how to fix``, and exit code 2. A spec with
+errors prints every problem (file:line:col, the text, a hint), then that line, and exits
+with code 2 without starting. A trace file prints every tick computed, then, on a
+run-time error, the error line: exit code 1 (2 for a value the spec refuses). Live modes
+print each output as a console line (``name[tick] = Int(7)``) and run until SIGTERM or
+SIGINT, then exit 0.
 
 Live modes publish verdicts (a Bool output turned false, a trigger fired; see
 docs/trust_checker.md, "Explanations and triggers") on the fabric and on MQTT
@@ -17,130 +22,39 @@ docs/trust_checker.md, "Explanations and triggers") on the fabric and on MQTT
 
 from __future__ import annotations
 
-import contextlib
 import importlib.util
 import logging
 import signal
 import sys
-from collections.abc import AsyncIterator, Sequence
+from collections.abc import AsyncIterator
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, TypeVar
 
 import anyio
-import msgspec
 import typer
-from anyio.abc import TaskStatus
-from rap_schemas import TrustSpecStatus, TrustVerdict, keys
-from rap_schemas.plan import ENDPOINT
+from rap_schemas import keys
 from rap_sdk import FabricError, ZenohConfig, ZenohFabric
+from rap_sdk.entry import check_endpoints, check_system, fail, run_cli, setup_logging
+from rap_sdk.errors import ConfigError
 
-from .config import ConfigError, FabricConfig, FabricInput, MqttConfig, TopicMap, decode_map
-from .errors import InputError, SpecError, TrustError
+from .config import FabricConfig, FabricInput, MqttConfig, ServiceConfig, TopicMap, decode_map
+from .console import ConsoleSink, console_lines, verdict_lines
+from .engine import SpecRunner
+from .errors import EvalError, InputError, SpecError, TextFileError
 from .explain import Explainer, to_message
-from .io.fabric import FabricTransport
-from .io.mqtt import MqttTransport
-from .io.ports import OutputLike
-from .io.session import Session
-from .io.specs import load_text
-from .io.ticks import TickPolicy, parse_tick_policy
-from .lang import load_spec
+from .lang import load_spec, read_source
 from .lang.ast import Spec
-from .monitor import Monitor
-from .tracefile import read_trace, run_trace
-from .values import console
+from .service import open_service
+from .tracefile import load_trace
+
+__all__ = ["cli", "main"]
 
 cli = typer.Typer(add_completion=False, help=__doc__)
+T = TypeVar("T")
 
-log = logging.getLogger("trust_checker")
+log = logging.getLogger(__name__)
 
-
-def _fail(message: str, code: int) -> typer.Exit:
-    typer.echo(f"error: {message}", err=True)
-    return typer.Exit(code)
-
-
-def _write_stdout(text: str) -> None:
-    sys.stdout.write(text)
-    sys.stdout.flush()
-
-
-def _write_stderr(text: str) -> None:
-    sys.stderr.write(text)
-    sys.stderr.flush()
-
-
-_encode_json = msgspec.json.Encoder().encode
-
-
-def verdict_lines(verdicts: Sequence[TrustVerdict]) -> str:
-    """``--explain``: one JSON line per verdict (the ``rap.TrustVerdict`` wire form)."""
-    return "".join(_encode_json(v).decode() + "\n" for v in verdicts)
-
-
-class ConsoleSink:
-    """Console lines on stdout for every output (the reference checker's format), and
-    with ``explain`` each verdict as a JSON line on stderr.
-
-    A tick's lines are queued and :meth:`run` writes whatever has queued in one call on a
-    worker thread, so neither a slow reader nor a write per tick holds up the session
-    (and the sinks after this one); only ``MAX_PENDING`` unwritten chunks make a tick
-    wait. What is queued when the checker stops is still written."""
-
-    MAX_PENDING = 10_000
-
-    def __init__(self, *, explain: bool = False) -> None:
-        self.explain = explain
-        self._send, self._receive = anyio.create_memory_object_stream[tuple[bool, str]](
-            self.MAX_PENDING
-        )
-
-    async def outputs(self, outs: Sequence[OutputLike]) -> None:
-        text = "".join(f"{o.stream}[{o.tick}] = {console(o.value)}\n" for o in outs)
-        if text:
-            await self._put((False, text))
-
-    async def verdicts(self, verdicts: Sequence[TrustVerdict]) -> None:
-        if self.explain and verdicts:
-            await self._put((True, verdict_lines(verdicts)))
-
-    async def _put(self, chunk: tuple[bool, str]) -> None:
-        """Queue without yielding to the event loop while there is room (a tick's lines
-        cost no task switch); wait only when ``MAX_PENDING`` chunks are unwritten."""
-        try:
-            self._send.send_nowait(chunk)
-        except anyio.WouldBlock:
-            await self._send.send(chunk)
-
-    async def status(self, status: TrustSpecStatus) -> None:
-        """Swap outcomes are logged by the session."""
-
-    async def run(self, *, task_status: TaskStatus[None] = anyio.TASK_STATUS_IGNORED) -> None:
-        task_status.started()
-        try:
-            async for first in self._receive:
-                await anyio.to_thread.run_sync(_write_chunks, self._drain(first))
-        finally:
-            with anyio.CancelScope(shield=True):
-                rest = self._drain(None)
-                if rest:
-                    await anyio.to_thread.run_sync(_write_chunks, rest)
-
-    def _drain(self, first: tuple[bool, str] | None) -> list[tuple[bool, str]]:
-        chunks = [] if first is None else [first]
-        while True:
-            try:
-                chunks.append(self._receive.receive_nowait())
-            except (anyio.WouldBlock, anyio.EndOfStream, anyio.ClosedResourceError):
-                return chunks
-
-
-def _write_chunks(chunks: list[tuple[bool, str]]) -> None:
-    out = "".join(text for err, text in chunks if not err)
-    err = "".join(text for is_err, text in chunks if is_err)
-    if out:
-        _write_stdout(out)
-    if err:
-        _write_stderr(err)
+_HOW_TO_RUN = "give --input-file FILE, --mqtt HOST:PORT or --fabric SYSTEM"
 
 
 def _mqtt_address(text: str) -> tuple[str, int]:
@@ -148,7 +62,7 @@ def _mqtt_address(text: str) -> tuple[str, int]:
     if not sep:
         return text, 1883
     if not host or not port.isdigit() or not 0 < int(port) < 65536:
-        raise ConfigError(f"--mqtt {text!r} is not HOST:PORT, e.g. 127.0.0.1:1883")
+        raise fail(f"--mqtt {text!r} is not HOST:PORT - write e.g. 127.0.0.1:1883")
     return host, int(port)
 
 
@@ -213,46 +127,33 @@ def main(
     ] = "message",
     log_level: Annotated[str, typer.Option(help="Logging level.")] = "INFO",
 ) -> None:
-    """Run a trust spec. A spec with errors exits with code 2."""
-    level = logging.getLevelNamesMapping().get(log_level.upper())
-    if level is None:
-        raise _fail(f"--log-level {log_level!r}: use DEBUG, INFO, WARNING or ERROR", 2)
-    logging.basicConfig(
-        level=level, stream=sys.stderr, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
-    )
+    """Run a trust spec. A mistake exits with code 2 and one 'error:' line."""
+    setup_logging(log_level)
+    mqtt_cfg = None
+    if mqtt is not None:
+        host, port = _mqtt_address(mqtt)
+        mqtt_cfg = MqttConfig(
+            host=host,
+            port=port,
+            topics=_decode(topics, TopicMap, "--topics") if topics else {},
+            tagged=tagged,
+            spec_topic=spec_topic,
+            status_topic=status_topic,
+            verdict_topic=verdict_topic,
+        )
+    fabric_cfg = None
+    zconf = None
+    if fabric is not None:
+        fabric_cfg, zconf = _fabric_config(
+            fabric, node, fabric_inputs, not no_default_inputs, connect, listen
+        )
     try:
-        policy = parse_tick_policy(tick)
-        mqtt_cfg = None
-        if mqtt is not None:
-            host, port = _mqtt_address(mqtt)
-            topic_map = decode_map(topics, TopicMap, "--topics") if topics else {}
-            mqtt_cfg = MqttConfig(
-                host=host,
-                port=port,
-                topics=topic_map,
-                tagged=tagged,
-                spec_topic=spec_topic,
-                status_topic=status_topic,
-                verdict_topic=verdict_topic,
-            )
-        fabric_cfg = None
-        zconf: ZenohConfig | None = None
-        if fabric is not None:
-            fabric_cfg, zconf = _fabric_config(
-                fabric, node, fabric_inputs, not no_default_inputs, connect, listen
-            )
-    except (ValueError, keys.KeyError_) as exc:
-        raise _fail(str(exc), 2) from None
-
-    try:
-        parsed = load_spec(Path(spec))
-    except SpecError as exc:
-        for problem in exc.problems:
-            typer.echo(str(problem), err=True)
-        n = len(exc.problems)
-        raise _fail(f"{spec}: {n} problem{'s' if n != 1 else ''}; not started", 2) from None
-    except OSError as exc:
-        raise _fail(f"cannot read spec {spec}: {exc.strerror or exc}", 2) from None
+        config = ServiceConfig(node=node, tick=tick, mqtt=mqtt_cfg, fabric=fabric_cfg)
+    except ValueError as exc:  # the tick policy
+        raise fail(f"--tick: {exc}") from None
+    if input_file is not None and (mqtt_cfg is not None or fabric_cfg is not None):
+        raise fail("--input-file runs alone - drop --mqtt and --fabric, or --input-file")
+    parsed = _load(spec)
     if check:
         typer.echo(
             f"{spec}: ok (inputs: {', '.join(parsed.inputs) or 'none'}; "
@@ -260,28 +161,45 @@ def main(
         )
         return
     if input_file is not None:
-        if mqtt_cfg is not None or fabric_cfg is not None:
-            raise _fail("--input-file runs alone; drop --mqtt/--fabric", 2)
         _run_file(parsed, input_file, explain=explain)
         return
     if mqtt_cfg is None and fabric_cfg is None:
-        raise _fail("nothing to run on: give --input-file, --mqtt HOST:PORT or --fabric SYSTEM", 2)
+        raise fail(f"nothing to run on - {_HOW_TO_RUN}")
     # uvloop when present, as RAP's other services run: a cheaper wake-up per message
     use_uvloop = importlib.util.find_spec("uvloop") is not None
     try:
         anyio.run(
-            _serve,
-            parsed,
-            policy,
-            mqtt_cfg,
-            fabric_cfg,
-            zconf,
-            node,
-            explain,
-            backend_options={"use_uvloop": use_uvloop},
+            _serve, config, parsed, zconf, explain, backend_options={"use_uvloop": use_uvloop}
         )
     except FabricError as exc:  # e.g. a listen endpoint that is taken
-        raise _fail(str(exc), 1) from None
+        raise fail(f"{exc} - check --listen and --connect", 1) from None
+
+
+def _decode(text: str, value_type: type[T], option: str) -> dict[str, T]:
+    try:
+        return decode_map(text, value_type, option)
+    except ConfigError as exc:
+        example = (
+            '{"stream": {"topic": "a/b"}}'
+            if value_type is TopicMap
+            else '{"stream": {"key": "rap/s/data/x", "field": "f"}}'
+        )
+        raise fail(f"{exc} - write a JSON object like {example}") from None
+
+
+def _load(spec: Path) -> Spec:
+    try:
+        return load_spec(spec)
+    except TextFileError as exc:
+        raise fail(str(exc)) from None
+    except SpecError as exc:
+        for problem in exc.problems:
+            typer.echo(str(problem), err=True)
+        n = len(exc.problems)
+        raise fail(
+            f"{spec}: {n} problem{'s' if n != 1 else ''}; not started - fix them (above) "
+            "and run again"
+        ) from None
 
 
 def _fabric_config(
@@ -292,119 +210,92 @@ def _fabric_config(
     connect: list[str] | None,
     listen: list[str] | None,
 ) -> tuple[FabricConfig, ZenohConfig]:
-    keys.system_pattern(system)
-    keys.admin(system, node, "swap")
-    for option, endpoints in (("--listen", listen), ("--connect", connect)):
-        for endpoint in endpoints or ():
-            if not ENDPOINT.fullmatch(endpoint):
-                raise ConfigError(
-                    f"{option} {endpoint!r} is not a Zenoh endpoint; write "
-                    "'<protocol>/<address>', e.g. 'tcp/127.0.0.1:7447'"
-                )
-    inputs = decode_map(inputs_json, FabricInput, "--fabric-inputs") if inputs_json else {}
+    check_system(system, "--fabric")
+    try:
+        keys.admin(system, node, "swap")
+    except keys.KeyError_ as exc:
+        raise fail(f"--node {node!r}: {exc}") from None
+    listen_eps = check_endpoints("--listen", listen)
+    connect_eps = check_endpoints("--connect", connect)
+    inputs = _decode(inputs_json, FabricInput, "--fabric-inputs") if inputs_json else {}
     if not inputs and not default_inputs:
-        raise ConfigError("--no-default-inputs needs --fabric-inputs: nothing would be read")
-    cfg = FabricConfig(system=system, node=node, inputs=inputs, default_inputs=default_inputs)
-    zconf = ZenohConfig(
-        listen=list(listen) if listen else ZenohConfig().listen, connect=list(connect or [])
-    )
+        raise fail("--no-default-inputs leaves nothing to read - give --fabric-inputs too")
+    cfg = FabricConfig(system=system, inputs=inputs, default_inputs=default_inputs)
+    zconf = ZenohConfig(listen=listen_eps or ZenohConfig().listen, connect=connect_eps)
     return cfg, zconf
 
 
-def _explain_trace(spec: Spec, ticks: list[dict[str, object]]) -> list[tuple[str, str]]:
-    """``run_trace`` with explanations: per tick, its console lines and its verdicts'
-    JSON lines."""
-    ex = Explainer(Monitor(spec))
-    out: list[tuple[str, str]] = []
-    steps = [ex.step(t) for t in ticks]
-    steps.append(ex.finish())
-    for outs, verdicts in steps:
-        text = "".join(f"{o.stream}[{o.tick}] = {console(o.value)}\n" for o in outs)
-        out.append((text, verdict_lines([to_message(v) for v in verdicts])))
-    return out
+def _run_file(spec: Spec, path: Path, *, explain: bool = False) -> None:
+    """Every tick's console lines (and with ``explain`` its verdicts on stderr) as soon
+    as it is computed; a failing tick ends the run with its error line, after every
+    earlier tick was written."""
+    try:
+        trace = load_trace(read_source(path, "trace"), str(path))
+    except (TextFileError, InputError) as exc:
+        raise fail(str(exc)) from None
+    runner = SpecRunner(spec)
+    explainer = Explainer(runner) if explain else None
+    n = len(trace.ticks)
+    try:
+        for inputs in trace.ticks:
+            if explainer is not None:
+                outs, verdicts = explainer.step(inputs)
+                _write(console_lines(outs), verdict_lines([to_message(v) for v in verdicts]))
+            else:
+                _write(console_lines(runner.step(inputs)), "")
+        if explainer is not None:
+            for outs, verdicts in explainer.drain():
+                _write(console_lines(outs), verdict_lines([to_message(v) for v in verdicts]))
+        else:
+            for outs in runner.drain():
+                _write(console_lines(outs), "")
+    except InputError as exc:  # the tick was not taken: runner.tick is its number
+        where = trace.where(str(path), runner.tick)
+        raise fail(f"{where}: {exc}") from None
+    except EvalError as exc:  # the tick was taken
+        failed = runner.tick - 1
+        after = " (after the last input)" if failed >= n else ""
+        raise fail(
+            f"{trace.where(str(path), failed)}: {exc}{after} - the spec cannot compute this "
+            "tick: guard the expression in the spec, or fix the trace's values",
+            1,
+        ) from None
+    finally:
+        sys.stdout.flush()
 
 
-def _run_file(spec: Spec, trace: Path, *, explain: bool = False) -> None:
-    try:
-        text = trace.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise _fail(f"cannot read trace {trace}: {exc.strerror or exc}", 2) from None
-    try:
-        ticks = read_trace(text, str(trace))
-        if explain:
-            for console_text, verdict_text in _explain_trace(spec, ticks):
-                _write_stdout(console_text)
-                _write_stderr(verdict_text)
-            return
-        lines = run_trace(spec, ticks)
-    except SpecError as exc:
-        for problem in exc.problems:
-            typer.echo(str(problem), err=True)
-        raise _fail(f"{trace}: not run", 2) from None
-    except InputError as exc:
-        raise _fail(str(exc), 2) from None
-    except TrustError as exc:
-        raise _fail(str(exc), 1) from None
-    for line in lines:
-        print(line)
+def _write(out: str, err: str) -> None:
+    """A tick's console lines (buffered) and its verdict lines (stderr, after the tick's
+    console lines)."""
+    if out:
+        sys.stdout.write(out)
+    if err:
+        sys.stdout.flush()
+        sys.stderr.write(err)
+        sys.stderr.flush()
 
 
 async def _serve(
-    spec: Spec,
-    policy: TickPolicy,
-    mqtt_cfg: MqttConfig | None,
-    fabric_cfg: FabricConfig | None,
-    zconf: ZenohConfig | None,
-    node: str,
-    explain: bool = False,
+    config: ServiceConfig, spec: Spec, zconf: ZenohConfig | None, explain: bool
 ) -> None:
-    console_sink = ConsoleSink(explain=explain)
-    session = Session(
-        Monitor(spec),
-        loader=load_text,
-        sinks=[console_sink],
-        policy=policy,
-        node=node,
-        explain=True,
-    )
+    sink = ConsoleSink(explain=explain)
     with anyio.open_signal_receiver(signal.SIGTERM, signal.SIGINT) as signals:
-        async with contextlib.AsyncExitStack() as stack:
-            zfabric = None
-            if fabric_cfg is not None and zconf is not None:
-                zfabric = await stack.enter_async_context(ZenohFabric(zconf))
-            tg = await stack.enter_async_context(anyio.create_task_group())
-            tg.start_soon(_stop_on_signal, signals, tg.cancel_scope)
-            await tg.start(console_sink.run)
-            await tg.start(session.run)
-            if mqtt_cfg is not None:
-                await tg.start(MqttTransport(session, mqtt_cfg).run)
-            if fabric_cfg is not None and zfabric is not None:
-                await tg.start(FabricTransport(session, zfabric, fabric_cfg).run)
-            log.info(
-                "ready: inputs %s, outputs %s, tick policy %s",
-                ", ".join(session.monitor.inputs) or "none",
-                ", ".join(session.monitor.outputs) or "none",
-                policy,
-            )
-    s = session.stats
-    log.info(
-        "stopped after %d ticks: %d outputs, %d verdicts, %d rejected, %d input errors, "
-        "%d eval errors",
-        s.ticks,
-        s.outputs,
-        s.verdicts,
-        s.rejected,
-        s.input_errors,
-        s.eval_errors,
-    )
+        if zconf is None:
+            async with open_service(config, spec, sinks=[sink]):
+                await _wait_for_signal(signals)
+            return
+        async with (
+            ZenohFabric(zconf) as fabric,
+            open_service(config, spec, fabric=fabric, sinks=[sink]),
+        ):
+            await _wait_for_signal(signals)
 
 
-async def _stop_on_signal(signals: AsyncIterator[int], scope: anyio.CancelScope) -> None:
+async def _wait_for_signal(signals: AsyncIterator[int]) -> None:
     async for signum in signals:
         log.info("received %s; stopping", signal.Signals(signum).name)
-        scope.cancel()
         return
 
 
 if __name__ == "__main__":
-    cli()
+    run_cli(cli, prog="python -m trust_checker")

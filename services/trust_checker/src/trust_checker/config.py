@@ -1,8 +1,11 @@
-"""Configuration of the checker's transports (frozen Structs; unknown fields refused).
+"""Configuration of the checker as a service (frozen Structs; unknown fields refused).
 
-The command line builds these from its flags; JSON maps (``--topics``,
-``--fabric-inputs``) are decoded strictly with :func:`decode_map`, whose errors name the
-``$.path`` of the bad part.
+:class:`ServiceConfig` is what :func:`trust_checker.service.open_service` runs: the
+checker's node id, its tick policy, and the transports (:class:`MqttConfig`,
+:class:`FabricConfig`; either, both, or none for a checker fed in Python). The command
+line builds these from its flags; JSON maps (``--topics``, ``--fabric-inputs``) are
+decoded strictly with :func:`decode_map`, whose errors name the ``$.path`` of the bad
+part (:class:`rap_sdk.ConfigError`).
 """
 
 from __future__ import annotations
@@ -10,21 +13,21 @@ from __future__ import annotations
 from typing import Annotated, Any, TypeVar
 
 import msgspec
+from rap_schemas.limits import DECODE_ERRORS, decode_failure
+from rap_sdk.errors import ConfigError
+
+from .io.ticks import TickPolicy, parse_tick_policy
 
 __all__ = [
-    "ConfigError",
     "FabricConfig",
     "FabricInput",
     "MqttConfig",
+    "ServiceConfig",
     "TopicMap",
     "decode_map",
 ]
 
 T = TypeVar("T")
-
-
-class ConfigError(ValueError):
-    """A configuration value is invalid; the message names it and how to fix it."""
 
 
 class TopicMap(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -68,10 +71,11 @@ class FabricInput(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
 
 
 class FabricConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """The checker on the RAP fabric: which system it reads and publishes on. Its node
+    id (envelope source, admin key of hot swap ``rap/<system>/admin/<node>/swap``) is
+    :attr:`ServiceConfig.node`."""
+
     system: str
-    node: str = "trust_checker"
-    """The checker's node id: the envelope source, and the admin key of hot swap
-    (``rap/<system>/admin/<node>/swap``)."""
     inputs: dict[str, FabricInput] = {}
     """Explicit inputs; with ``default_inputs`` the trace records and events too."""
     default_inputs: bool = True
@@ -79,15 +83,42 @@ class FabricConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     publish_timeout: Annotated[float, msgspec.Meta(gt=0)] = 2.0
     inbox: Annotated[int, msgspec.Meta(ge=1)] = 1 << 16
     """Input samples that may wait for the checker; past this many, new ones are dropped,
-    counted (``FabricStats.lost``) and logged as an error."""
+    counted (``FabricTransportStats.lost``) and logged as an error."""
+
+
+class ServiceConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """One checker: what :func:`trust_checker.service.open_service` wires and runs."""
+
+    node: Annotated[str, msgspec.Meta(min_length=1)] = "trust_checker"
+    """The checker's node id: the ``node`` of every spec status, and on the fabric the
+    envelope source and the admin key of hot swap."""
+    tick: str = "message"
+    """Tick policy: ``message`` (one message, one tick) or ``window:<duration>``
+    (``window:10ms``; see :mod:`trust_checker.io.ticks`). Checked when built."""
+    verdicts: bool = True
+    """Explain every tick and give the verdicts (a Bool output turned false, a trigger
+    fired) to the sinks that take them (the transports publish them). Needs a
+    :class:`~trust_checker.engine.SpecRunner`; a stand-in runner gives none."""
+    capacity: Annotated[int, msgspec.Meta(ge=1)] = 1024
+    """Messages (or batches, or spec updates) that may wait for the session."""
+    mqtt: MqttConfig | None = None
+    fabric: FabricConfig | None = None
+
+    def __post_init__(self) -> None:
+        parse_tick_policy(self.tick)  # ValueError saying how to write it
+
+    @property
+    def policy(self) -> TickPolicy:
+        return parse_tick_policy(self.tick)
 
 
 def decode_map(text: str, value_type: type[T], what: str) -> dict[str, T]:
-    """A JSON object ``name -> value_type`` given on the command line."""
+    """A JSON object ``name -> value_type`` given on the command line;
+    :class:`rap_sdk.ConfigError` saying what is wrong (with its ``$.path``) otherwise."""
     try:
         out: dict[str, Any] = msgspec.json.decode(text, type=dict[str, value_type])  # type: ignore[valid-type]
     except msgspec.ValidationError as exc:
         raise ConfigError(f"{what}: {exc}") from None
-    except msgspec.DecodeError as exc:
-        raise ConfigError(f"{what} is not JSON: {exc}") from None
+    except DECODE_ERRORS as exc:
+        raise ConfigError(f"{what} is not a JSON object: {decode_failure(exc)}") from None
     return out

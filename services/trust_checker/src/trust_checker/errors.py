@@ -6,15 +6,19 @@ TrustError                    base of everything raised here
 │                             file:line:col, the offending text and a hint
 ├── EvalError                 a run-time error in a tick (Int overflow, division by
 │                             zero, a value of the wrong type): stream, tick, place
-└── InputError                an input that cannot be taken (unknown stream, bad
-                              value, bad trace file line): what and where
+├── InputError                an input that cannot be taken (unknown stream, bad
+│                             value, bad trace file line): what and where
+└── TextFileError             a spec or trace file that cannot be read (missing, a
+                              directory, too large, not UTF-8 text): path[:line:col]
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["EvalError", "InputError", "Problem", "SpecError", "TrustError"]
+from rap_schemas.yamlconf import YamlError
+
+__all__ = ["EvalError", "InputError", "Problem", "SpecError", "TextFileError", "TrustError"]
 
 
 class TrustError(Exception):
@@ -63,3 +67,10 @@ class EvalError(TrustError):
 
 class InputError(TrustError):
     """An input that cannot be taken: unknown stream, bad value, bad trace line."""
+
+
+class TextFileError(TrustError, YamlError):
+    """A spec or trace file that cannot be read: the message starts with the path (and
+    ``line:col`` of the first byte that is not UTF-8) and says how to fix it; ``source``,
+    ``line`` and ``column`` are attributes too (see
+    :func:`rap_schemas.yamlconf.read_text_file`)."""

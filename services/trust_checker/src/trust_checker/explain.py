@@ -1,13 +1,13 @@
 """Structured verdicts: why a Bool output turned false, and why a trigger fired.
 
-:class:`Explainer` wraps a :class:`~trust_checker.monitor.Monitor`; its :meth:`step`
-returns the monitor's outputs plus :class:`Verdict` values:
+:class:`Explainer` wraps a :class:`~trust_checker.engine.SpecRunner`; its :meth:`step`
+returns the runner's outputs plus :class:`ExplainedVerdict` values:
 
 - an **output verdict** when a Bool output turns false: its value is false at this tick
   and the last value it gave before was not false (true, ⊥, or none yet). A stream that
   stays false gives no further verdict until it has been something else in between;
 - a **trigger verdict** for every firing of ``trigger COND "message" severity`` (every
-  tick at which COND is true, as :attr:`Monitor.fired` lists them); its ``stream`` is
+  tick at which COND is true, as :attr:`SpecRunner.fired` lists them); its ``stream`` is
   ``trigger.<n>``, n the trigger's place among the spec's triggers (0-based).
 
 ``because`` lists what decided the value, depth-first from the verdict's expression:
@@ -32,7 +32,7 @@ already listed, and the list is bounded
 ``x[k]`` is a leaf: a past value, explained by the input tick it arrived at.
 
 Values of subexpressions are read from the compiled nodes after the tick
-(:attr:`Monitor.nodes`, ``node.value()``), so nothing is computed on the hot path
+(:attr:`SpecRunner.nodes`, ``node.value()``), so nothing is computed on the hot path
 unless a verdict is due. Drain ticks (:meth:`finish`) are explained from the state
 after the last one: a verdict at an earlier drain tick has no ``because`` and is marked
 ``truncated``.
@@ -47,20 +47,20 @@ from typing import Final, NamedTuple, Protocol
 
 from rap_schemas import TrustCause, TrustVerdict
 
+from trust_checker.engine.runner import Output, SpecRunner
 from trust_checker.errors import EvalError
 from trust_checker.lang import ast
 from trust_checker.lang.check import children
-from trust_checker.lang.lexer import Token, tokenize
+from trust_checker.lang.lexer import Lexeme, tokenize
 from trust_checker.lang.parser import BINARY
-from trust_checker.monitor import Monitor, Output
 from trust_checker.operators import Fault
 from trust_checker.values import BOTTOM, NOVAL, UNIT, console, to_plain
 
 __all__ = [
     "Cause",
     "Explained",
+    "ExplainedVerdict",
     "Explainer",
-    "Verdict",
     "expr_text",
     "to_message",
 ]
@@ -69,13 +69,13 @@ MAX_TEXT: Final = 200
 """Longest subexpression text given (longer is cut with "...")."""
 
 
-class _Node(Protocol):
-    """What explanations read of a compiled node (``trust_checker.compile.Node``)."""
+class _NodeView(Protocol):
+    """What explanations read of a compiled node (``trust_checker.engine.nodes.ExprNode``)."""
 
     @property
     def ast(self) -> ast.Expr: ...
     @property
-    def children(self) -> tuple[_Node, ...]: ...
+    def children(self) -> tuple[_NodeView, ...]: ...
     def value(self) -> object: ...
 
 
@@ -103,7 +103,7 @@ class Cause:
 
 
 @dataclass(frozen=True, slots=True)
-class Verdict:
+class ExplainedVerdict:
     """An output that turned false (``kind="output"``) or a trigger that fired."""
 
     stream: str
@@ -131,10 +131,10 @@ class Verdict:
 
 class Explained(NamedTuple):
     outputs: list[Output]
-    verdicts: list[Verdict]
+    verdicts: list[ExplainedVerdict]
 
 
-def to_message(v: Verdict) -> TrustVerdict:
+def to_message(v: ExplainedVerdict) -> TrustVerdict:
     """The wire form (``rap.TrustVerdict``): values as plain data."""
     sev = v.severity
     return TrustVerdict(
@@ -177,7 +177,7 @@ class _Source:
     """The spec's tokens, to give each subexpression as it was written."""
 
     def __init__(self, spec: ast.Spec) -> None:
-        toks: list[Token] = []
+        toks: list[Lexeme] = []
         if spec.source:
             toks, _ = tokenize(spec.source, spec.path)
         self.toks = [t for t in toks if t.kind != "EOF"]
@@ -309,7 +309,7 @@ def expr_text(e: ast.Expr, outer: int = 0) -> str:
 # -- the explainer ---------------------------------------------------------------------
 
 
-def _value(n: _Node) -> object:
+def _value(n: _NodeView) -> object:
     try:
         return n.value()
     except Fault:  # not computable on its own (e.g. an operand that failed): skip it
@@ -340,7 +340,7 @@ class _Walk:
         self.seen: set[str] = set()
         self.truncated = False
 
-    def root(self, node: _Node) -> None:
+    def root(self, node: _NodeView) -> None:
         e = node.ast
         if isinstance(e, ast.Var) or _is_input_leaf(e):
             self.visit(node, 0)  # ok = x: the input (or stream) itself is the reason
@@ -356,7 +356,7 @@ class _Walk:
         self.causes.append(cause)
         return True
 
-    def visit(self, node: _Node, depth: int, chain: str = "") -> None:
+    def visit(self, node: _NodeView, depth: int, chain: str = "") -> None:
         """``chain``: the parent's operator when it is ``&&`` or ``||``; a child with the
         same operator is part of the same chain (``a && b && c``), not a level."""
         if self.truncated:
@@ -383,7 +383,7 @@ class _Walk:
                 return
             if fresh and not self.add(Cause(text, v, depth)):
                 return
-            sub = ex.monitor.nodes.get(e.name)
+            sub = ex.runner.nodes.get(e.name)
             if sub is not None and depth + 1 < ex.max_depth:
                 self.visit(sub, depth + 1)
             elif sub is not None:
@@ -412,7 +412,7 @@ def _chain(e: ast.Expr) -> str:
     return e.op if isinstance(e, ast.Binary) and e.op in ("&&", "||") else ""
 
 
-def _deciding(node: _Node, v: object) -> Sequence[_Node]:
+def _deciding(node: _NodeView, v: object) -> Sequence[_NodeView]:
     """The operands of ``node`` that decide its value ``v`` (the table above)."""
     kids = node.children
     e = node.ast
@@ -445,16 +445,16 @@ def _deciding(node: _Node, v: object) -> Sequence[_Node]:
 
 
 class Explainer:
-    """Wraps ``monitor``: :meth:`step` gives the outputs and the verdicts of a tick.
-    Use it instead of the monitor (it tracks at which tick each input value arrived)."""
+    """Wraps ``runner``: :meth:`step` gives the outputs and the verdicts of a tick.
+    Use it instead of the runner (it tracks at which tick each input value arrived)."""
 
-    def __init__(self, monitor: Monitor, *, max_causes: int = 16, max_depth: int = 8) -> None:
+    def __init__(self, runner: SpecRunner, *, max_causes: int = 16, max_depth: int = 8) -> None:
         if max_causes < 1 or max_depth < 1:
             raise ValueError("max_causes and max_depth must be at least 1")
-        self.monitor = monitor
+        self.runner = runner
         self.max_causes = max_causes
         self.max_depth = max_depth
-        spec = monitor.spec
+        spec = runner.spec
         self._inputs = frozenset(spec.inputs)
         self._outputs = frozenset(spec.outputs)
         self._source = _Source(spec)
@@ -477,8 +477,8 @@ class Explainer:
             name: deque(maxlen=k + 1) for name, k in depth.items() if k > 0
         }
         """Input read at x[k], k > 0 -> its last k+1 arrival ticks."""
-        by_ast = {id(n.ast): n for n in monitor.nodes.values()}
-        self._triggers: list[tuple[ast.Trigger, _Node | None]] = [
+        by_ast = {id(n.ast): n for n in runner.nodes.values()}
+        self._triggers: list[tuple[ast.Trigger, _NodeView | None]] = [
             (t, by_ast.get(id(t.cond))) for t in spec.triggers
         ]
 
@@ -486,14 +486,14 @@ class Explainer:
 
     @property
     def tick(self) -> int:
-        return self.monitor.tick
+        return self.runner.tick
 
     def step(self, inputs: Mapping[str, object], ts_ns: int | None = None) -> Explained:
-        """One tick of the monitor (same errors: ``InputError``, the tick not taken;
+        """One tick of the runner (same errors: ``InputError``, the tick not taken;
         ``EvalError``, the tick taken and its outputs lost) and its verdicts."""
-        tick = self.monitor.tick
+        tick = self.runner.tick
         try:
-            outs = self.monitor.step(inputs, ts_ns)
+            outs = self.runner.step(inputs, ts_ns)
         except EvalError:
             self._arrived(inputs, tick)
             raise
@@ -501,20 +501,25 @@ class Explainer:
         return Explained(outs, self._verdicts(outs, ts_ns, tick))
 
     def finish(self) -> Explained:
-        """The drain ticks of a finite trace (:meth:`Monitor.drain`) and their verdicts,
+        """The drain ticks of a finite trace (:meth:`SpecRunner.drain`) and their verdicts,
         each explained at its own drain tick."""
         outs: list[Output] = []
-        verdicts: list[Verdict] = []
-        for tick_outs in self.monitor.drain():
-            outs += tick_outs
-            verdicts += self._verdicts(tick_outs, None, self.monitor.tick - 1)
+        verdicts: list[ExplainedVerdict] = []
+        for tick in self.drain():
+            outs += tick.outputs
+            verdicts += tick.verdicts
         return Explained(outs, verdicts)
 
+    def drain(self) -> Iterator[Explained]:
+        """:meth:`finish` one drain tick at a time."""
+        for tick_outs in self.runner.drain():
+            yield Explained(tick_outs, self._verdicts(tick_outs, None, self.runner.tick - 1))
+
     def swap(self, spec: ast.Spec) -> Explainer:
-        """An explainer over ``monitor.swap(spec)``; input arrival ticks and the outputs'
+        """An explainer over ``runner.swap(spec)``; input arrival ticks and the outputs'
         last values carry over for the streams that keep their names."""
         new = Explainer(
-            self.monitor.swap(spec), max_causes=self.max_causes, max_depth=self.max_depth
+            self.runner.swap(spec), max_causes=self.max_causes, max_depth=self.max_depth
         )
         new._last = {k: t for k, t in self._last.items() if k in new._inputs}
         new._prev = {k: v for k, v in self._prev.items() if k in new._outputs}
@@ -525,7 +530,7 @@ class Explainer:
         return new
 
     def _arrived(self, inputs: Mapping[str, object], tick: int) -> None:
-        if self.monitor.tick == tick:
+        if self.runner.tick == tick:
             return  # not taken
         for name, v in inputs.items():
             if v is not NOVAL:
@@ -534,15 +539,17 @@ class Explainer:
                 if q is not None:
                     q.append(tick)
 
-    def _verdicts(self, outs: Sequence[Output], ts_ns: int | None, now: int) -> list[Verdict]:
-        verdicts: list[Verdict] = []
+    def _verdicts(
+        self, outs: Sequence[Output], ts_ns: int | None, now: int
+    ) -> list[ExplainedVerdict]:
+        verdicts: list[ExplainedVerdict] = []
         prev = self._prev
         for o in outs:
             if o.value is False and prev.get(o.stream) is not False:
-                node = self.monitor.nodes.get(o.stream)
+                node = self.runner.nodes.get(o.stream)
                 verdicts.append(self._verdict(o.stream, o.tick, o.ts_ns, False, node, now))
             prev[o.stream] = o.value
-        fired = self.monitor.fired
+        fired = self.runner.fired
         if fired:
             verdicts += self._fired(now, ts_ns)
         return verdicts
@@ -553,10 +560,10 @@ class Explainer:
         tick: int,
         ts_ns: int | None,
         value: object,
-        node: _Node | None,
+        node: _NodeView | None,
         now: int,
         trigger: ast.Trigger | None = None,
-    ) -> Verdict:
+    ) -> ExplainedVerdict:
         because: tuple[Cause, ...] = ()
         truncated = True
         expr = ""
@@ -567,8 +574,8 @@ class Explainer:
                 w.root(node)
                 because, truncated = tuple(w.causes), w.truncated
         if trigger is None:
-            return Verdict(stream, tick, ts_ns, value, expr, because, truncated=truncated)
-        return Verdict(
+            return ExplainedVerdict(stream, tick, ts_ns, value, expr, because, truncated=truncated)
+        return ExplainedVerdict(
             stream,
             tick,
             ts_ns,
@@ -581,10 +588,10 @@ class Explainer:
             truncated=truncated,
         )
 
-    def _fired(self, now: int, ts_ns: int | None) -> list[Verdict]:
-        """Monitor.fired, in trigger order, each as a verdict on ``trigger.<index>``."""
-        out: list[Verdict] = []
-        for f in self.monitor.fired:
+    def _fired(self, now: int, ts_ns: int | None) -> list[ExplainedVerdict]:
+        """SpecRunner.fired, in trigger order, each as a verdict on ``trigger.<index>``."""
+        out: list[ExplainedVerdict] = []
+        for f in self.runner.fired:
             t, node = self._triggers[f.trigger]
             out.append(self._verdict(f"trigger.{f.trigger}", f.tick, f.ts_ns, True, node, now, t))
         return out
@@ -606,7 +613,7 @@ class Explainer:
         if not isinstance(target, ast.Var) or target.name not in self._inputs:
             return Cause(text, v, depth)
         name = target.name
-        at = self.monitor.tick - 1 - idx.offset
+        at = self.runner.tick - 1 - idx.offset
         arrived: int | None = None
         if idx.offset == 0:
             arrived = self._last.get(name)

@@ -1,9 +1,9 @@
 """What the operators and built-ins do to data values (no NoVal, no ⊥: the compiled nodes in
-:mod:`trust_checker.compile` handle holding and ⊥ before calling in here).
+:mod:`trust_checker.engine.lifted` handle holding and ⊥ before calling in here).
 
 Every function raises :class:`Fault` for a run-time error (Int overflow, division by zero,
 a value of the wrong type); the node that called it adds where in the spec, and the
-monitor adds the stream and the tick (:class:`trust_checker.errors.EvalError`).
+runner adds the stream and the tick (:class:`trust_checker.errors.EvalError`).
 Type conformance of inputs and ``eval`` ascriptions is :func:`conformer`.
 """
 

@@ -12,20 +12,39 @@ A trace is a sequence of numbered blocks, one per tick::
 Values are literals of the language (``-3``, ``1.5``, ``true``, ``"s"``, ``()``,
 ``[1, 2]``, ``Map("k": 1)``, ``{a: 1}``, ``(1, true)``), parsed by the checker's own parser.
 Tick numbers increase; a number skipped (or a first block after 0) is an empty tick.
+
+:func:`iter_trace` runs a spec over the ticks one at a time (a run-time error at tick n
+comes after ticks 0..n-1 were given); :func:`load_trace` also gives the line each tick's
+block starts on, so that an error can name its place in the file.
 """
 
 from __future__ import annotations
 
 import re
-from typing import Final
+from collections.abc import Iterator
+from typing import Final, NamedTuple
 
+from trust_checker.engine import Output, SpecRunner
 from trust_checker.errors import InputError, SpecError
 from trust_checker.lang import ast
 from trust_checker.lang.parser import parse_expr
-from trust_checker.monitor import Monitor
 from trust_checker.values import MapV, StructV, TupleV, console
 
-__all__ = ["read_trace", "run_trace"]
+__all__ = ["Trace", "iter_trace", "load_trace", "read_trace", "run_trace"]
+
+
+class Trace(NamedTuple):
+    """A trace file's ticks, and for each the line its block starts on (0 for a tick
+    that no block gives: a number skipped)."""
+
+    ticks: list[dict[str, object]]
+    lines: list[int]
+
+    def where(self, path: str, tick: int) -> str:
+        """``path:line:1`` of ``tick``'s block (``path`` alone past the last block)."""
+        line = self.lines[tick] if 0 <= tick < len(self.lines) else 0
+        return f"{path}:{line}:1" if line else path
+
 
 _HEAD: Final = re.compile(r"(\s*)(\d+)\s*:\s*")
 _ASSIGN: Final = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)\s*=(?!=)\s*")
@@ -77,7 +96,13 @@ def _literal(e: ast.Expr, where: tuple[str, int, int]) -> object:
 def read_trace(text: str, path: str = "<trace>") -> list[dict[str, object]]:
     """The ticks of a trace file: one dict per tick (empty: nothing arrived), input name
     to value. Raises :class:`InputError` at ``path:line:col`` for a malformed line."""
+    return load_trace(text, path).ticks
+
+
+def load_trace(text: str, path: str = "<trace>") -> Trace:
+    """:func:`read_trace` with the line of every tick's block."""
     ticks: list[dict[str, object]] = []
+    lines: list[int] = []
     current: dict[str, object] | None = None
     last = -1
     for lineno, raw in enumerate(text.splitlines(), start=1):
@@ -91,11 +116,13 @@ def read_trace(text: str, path: str = "<trace>") -> list[dict[str, object]]:
             if n <= last:
                 raise InputError(
                     f"{path}:{lineno}:{len(head.group(1)) + 1}: tick {n} comes after tick "
-                    f"{last}; tick numbers must increase (merge the two blocks, or renumber)"
+                    f"{last} - tick numbers must increase (merge the two blocks, or renumber)"
                 )
             ticks.extend({} for _ in range(n - last - 1))
+            lines.extend(0 for _ in range(n - last - 1))
             current = {}
             ticks.append(current)
+            lines.append(lineno)
             last = n
             col = head.end() + 1
             if col > len(line):  # "N:" alone: an empty tick
@@ -104,7 +131,7 @@ def read_trace(text: str, path: str = "<trace>") -> list[dict[str, object]]:
             indent = len(line) - len(line.lstrip())
             raise InputError(
                 f"{path}:{lineno}:{indent + 1}: expected 'N: name = value' to open a tick"
-                + (" (lines that add to a tick are indented under it)" if current else "")
+                + (" - lines that add to a tick are indented under it" if current else "")
             )
         else:
             col = len(line) - len(line.lstrip()) + 1
@@ -112,11 +139,12 @@ def read_trace(text: str, path: str = "<trace>") -> list[dict[str, object]]:
         if assign is None:
             raise InputError(
                 f"{path}:{lineno}:{col}: expected 'name = value', found {line[col - 1 :]!r}"
+                " - write one assignment per line, e.g. x = 1"
             )
         name = assign.group(1)
         if name in current:
             raise InputError(
-                f"{path}:{lineno}:{col}: '{name}' is given twice in tick {last}; one value "
+                f"{path}:{lineno}:{col}: '{name}' is given twice in tick {last} - one value "
                 "per stream and tick (put the second in a later tick)"
             )
         vcol = assign.end() + 1
@@ -127,19 +155,29 @@ def read_trace(text: str, path: str = "<trace>") -> list[dict[str, object]]:
             p = e.problems[0]
             raise InputError(
                 f"{path}:{lineno}:{vcol + p.col - 1}: bad value {source.strip()!r}: {p.message}"
-                + (f" ({p.hint})" if p.hint else "")
+                + (f" - {p.hint}" if p.hint else " - write a literal of the language")
             ) from None
         current[name] = _literal(expr, (path, lineno, vcol))
-    return ticks
+    return Trace(ticks, lines)
 
 
-def run_trace(spec: ast.Spec | Monitor, ticks: list[dict[str, object]]) -> list[str]:
-    """Run ``spec`` (or a fresh :class:`Monitor`) over ``ticks`` and the drain ticks after
-    them; the console lines ``name[tick] = Int(7)``. Run-time errors raise
-    :class:`trust_checker.errors.EvalError`, bad inputs :class:`InputError`."""
-    m = spec if isinstance(spec, Monitor) else Monitor(spec)
-    lines: list[str] = []
+def iter_trace(
+    spec: ast.Spec | SpecRunner, ticks: list[dict[str, object]]
+) -> Iterator[list[Output]]:
+    """Run ``spec`` (or a fresh :class:`SpecRunner`) over ``ticks`` and the drain ticks
+    after them: each tick's outputs, one list per tick, input ticks first. A run-time
+    error raises :class:`trust_checker.errors.EvalError`, a bad input
+    :class:`InputError`, at the tick that fails, after every earlier tick was yielded."""
+    m = spec if isinstance(spec, SpecRunner) else SpecRunner(spec)
     for t in ticks:
-        lines.extend(f"{o.stream}[{o.tick}] = {console(o.value)}" for o in m.step(t))
-    lines.extend(f"{o.stream}[{o.tick}] = {console(o.value)}" for o in m.finish())
-    return lines
+        yield m.step(t)
+    yield from m.drain()
+
+
+def run_trace(spec: ast.Spec | SpecRunner, ticks: list[dict[str, object]]) -> list[str]:
+    """:func:`iter_trace` in one go: the console lines ``name[tick] = Int(7)``."""
+    return [
+        f"{o.stream}[{o.tick}] = {console(o.value)}"
+        for outs in iter_trace(spec, ticks)
+        for o in outs
+    ]

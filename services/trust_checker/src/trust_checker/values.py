@@ -249,8 +249,8 @@ def from_tagged(j: Any) -> Any:
             cls = MapV if tag == "Map" else StructV
             return cls({str(k): from_tagged(e) for k, e in x.items()})
     raise ValueError_(
-        f'not a tagged value: {j!r} (expected e.g. {{"Int": 42}}, {{"Str": "a"}}, '
-        '"Unit" or "Unknown")'
+        f'not a tagged value: {_clip(j)} - write e.g. {{"Int": 42}}, {{"Str": "a"}}, '
+        '"Unit" or "Unknown"'
     )
 
 
@@ -283,10 +283,18 @@ def from_plain(j: Any) -> Any:
         return tuple(from_plain(x) for x in j)
     if t is dict:
         return MapV({str(k): from_plain(x) for k, x in j.items()})
-    raise ValueError_(f"not a JSON value: {j!r}")
+    raise ValueError_(f"not a JSON value: {_clip(j)} - send numbers, strings, lists or objects")
 
 
 def check_int(i: int) -> int:
     if INT_MIN <= i <= INT_MAX:
         return i
-    raise ValueError_(f"integer {i} does not fit in 64 bits")
+    raise ValueError_(f"integer {_clip(i)} does not fit in 64 bits - send a Float")
+
+
+def _clip(v: object, n: int = 80) -> str:
+    """``repr(v)`` cut to ``n`` characters (a reason must not echo a whole payload)."""
+    if type(v) is int and v.bit_length() > 256:
+        return f"of {v.bit_length()} bits"  # repr() of a huge int is slow, or refused
+    text = repr(v)
+    return text if len(text) <= n else text[: n - 3] + "..."

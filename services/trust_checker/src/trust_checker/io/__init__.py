@@ -1,25 +1,26 @@
 """Inputs and outputs of the checker: payload codec, tick policies, the session that
-owns the monitor, and the MQTT and fabric transports."""
+owns the spec runner, and the MQTT and fabric transports (:mod:`.mqtt`, :mod:`.fabric`;
+wired together by :func:`trust_checker.service.open_service`)."""
 
 from .codec import CodecError, decode_json, decode_payload, encode_value, payload_form
-from .ports import Clock, MonitorLike, OutputLike, Sink, SpecLoader
-from .session import Session, SessionStats, SwapRequest, SystemClock
+from .ports import OutputLike, RunnerLike, RunningSink, Sink, SpecLoader, VerdictSink
+from .session import Session, SessionStats, SwapRequest
 from .ticks import MESSAGE, Arrival, TickPolicy, merge, parse_duration, parse_tick_policy
 
 __all__ = [
     "MESSAGE",
     "Arrival",
-    "Clock",
     "CodecError",
-    "MonitorLike",
     "OutputLike",
+    "RunnerLike",
+    "RunningSink",
     "Session",
     "SessionStats",
     "Sink",
     "SpecLoader",
     "SwapRequest",
-    "SystemClock",
     "TickPolicy",
+    "VerdictSink",
     "decode_json",
     "decode_payload",
     "encode_value",

@@ -23,18 +23,29 @@ A wrapped value is read as plain JSON (so ``{"value": {"Int": 1}}`` is the map
 Outputs are written wrapped, ``{"value": <plain JSON>}`` (⊥ as
 ``{"value": null, "deferred": true}``), so one checker's outputs feed another's inputs;
 or, on request, tagged (``{"Int": 42}``, ⊥ as ``"Unknown"``). NoVal is never written.
+
+Limits: a payload is at most :data:`MAX_PAYLOAD` bytes, and its JSON document nests
+lists and objects at most :data:`MAX_DEPTH` levels (``rap_schemas.limits.MAX_DEPTH``,
+counted on the document as sent: in the tagged form each ``{"List": [...]}`` is two
+levels). Anything else (too large, too deep, not JSON, not UTF-8, a tagged-looking
+document that is not a valid tagged value) raises :class:`CodecError`, a
+``DecodeRejected`` whose ``reason`` says why; nothing is decoded recursively before the
+depth is checked.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any, Final
 
 import msgspec
+from rap_schemas.limits import MAX_DEPTH, DecodeRejected, SafeDecoder, check_depth
 
 from ..values import BOTTOM, NOVAL, ValueError_, from_plain, from_tagged, to_plain, to_tagged
 
 __all__ = [
+    "MAX_DEPTH",
     "MAX_PAYLOAD",
     "TAGS",
     "CodecError",
@@ -51,12 +62,16 @@ TAGS: Final = frozenset({"Int", "Float", "Bool", "Str", "List", "Tuple", "Map", 
 _BARE_TAGS: Final = frozenset({"Unit", "Unknown"})
 _WRAP_KEYS: Final = frozenset({"value", "deferred"})
 
-_decode = msgspec.json.Decoder().decode
+_decode: Callable[[bytes | bytearray | str], Any] = SafeDecoder(
+    Any, protocol="json", max_bytes=MAX_PAYLOAD, what="payload"
+).decode
 _encode = msgspec.json.Encoder().encode
+_HOW: Final = 'send one JSON value: 42, {"Int": 42} or {"value": 42}'
 
 
-class CodecError(ValueError):
-    """A payload that is not a stream value; the message says why and what would be."""
+class CodecError(DecodeRejected):
+    """A payload that is not a stream value; ``reason`` (the message) says why and what
+    would be."""
 
 
 def payload_form(doc: Any) -> str:
@@ -72,7 +87,17 @@ def payload_form(doc: Any) -> str:
 
 
 def decode_json(doc: Any) -> Any:
-    """A decoded JSON document (any of the three forms) to a stream value."""
+    """A decoded JSON document (any of the three forms) to a stream value;
+    :class:`CodecError` for one nested deeper than :data:`MAX_DEPTH` or not a value."""
+    try:
+        check_depth(doc, MAX_DEPTH, "the value")
+    except DecodeRejected as exc:
+        raise CodecError(exc.reason) from None
+    return _value(doc)
+
+
+def _value(doc: Any) -> Any:
+    """:func:`decode_json` on a document whose depth is checked."""
     form = payload_form(doc)
     try:
         if form == "tagged":
@@ -81,7 +106,8 @@ def decode_json(doc: Any) -> Any:
             deferred = doc.get("deferred", False)
             if type(deferred) is not bool:
                 raise CodecError(
-                    f'"deferred" must be true or false, got {deferred!r} in wrapped value {doc!r}'
+                    f'"deferred" must be true or false, got {deferred!r} in wrapped value '
+                    f"{_clip(doc)} - write true or false"
                 )
             return BOTTOM if deferred else from_plain(doc["value"])
         return from_plain(doc)
@@ -89,21 +115,26 @@ def decode_json(doc: Any) -> Any:
         raise CodecError(f"{form} value rejected: {exc}") from None
 
 
+def _clip(doc: Any, n: int = 80) -> str:
+    text = repr(doc)
+    return text if len(text) <= n else text[: n - 3] + "..."
+
+
 def decode_payload(payload: bytes | bytearray | str) -> Any:
-    """A payload (UTF-8 JSON) to a stream value; :class:`CodecError` saying why not."""
+    """A payload (UTF-8 JSON) to a stream value; :class:`CodecError` saying why not
+    (never anything else, whatever the bytes)."""
     size = len(payload)
     if size > MAX_PAYLOAD:
-        raise CodecError(f"payload of {size} bytes is larger than the {MAX_PAYLOAD} allowed")
+        raise CodecError(
+            f"payload of {size} bytes is larger than the {MAX_PAYLOAD} allowed - send a "
+            "smaller value"
+        )
     if not size or not (payload.strip() if isinstance(payload, str) else bytes(payload).strip()):
-        raise CodecError('empty payload; send a JSON value: 42, {"Int": 42} or {"value": 42}')
+        raise CodecError(f"empty payload - {_HOW}")
     try:
         doc = _decode(payload)
-    except msgspec.DecodeError as exc:
-        text = bytes(payload[:60]) if not isinstance(payload, str) else payload[:60]
-        raise CodecError(
-            f"payload is not JSON ({exc}): {text!r}; send a JSON value: 42, "
-            '{"Int": 42} or {"value": 42}'
-        ) from None
+    except DecodeRejected as exc:
+        raise CodecError(f"{exc.reason} - {_HOW}") from None
     return decode_json(doc)
 
 

@@ -51,13 +51,22 @@ fresh at a tick with a tick counter (``docs/trust_checker.md``, "MAPLE-K specs a
 veto").
 
 Explicit inputs (``FabricConfig.inputs``): ``stream <- key expression``, the value being
-the message body as plain data (bytes as hex strings), or one ``field`` of it. A sample
+the message body decoded without a type, as plain data (bytes as hex strings), or one
+``field`` of it; its lists and maps may nest at most ``rap_schemas.limits.MAX_DEPTH``
+levels, and map keys must be strings (or numbers, taken as their text). A sample
 matched both by the defaults and by explicit inputs sets all of their streams in one
 tick. With the default inputs the transport subscribes to ``rap/<system>/**`` once, so a
 sender's records and events keep their order; explicit inputs outside the system get a
 subscription each (no order is promised between different subscriptions). Every sample
-is an envelope, opened with :class:`rap_sdk.Opener` (duplicates
-dropped); one that cannot be opened or read is rejected, counted and logged.
+is an envelope of at most ``rap_schemas.limits.MAX_SAMPLE_BYTES``, opened with
+:class:`rap_sdk.Opener` (duplicates dropped).
+
+Bad input never stops the transport: a sample that is too large, cannot be opened, whose
+body is not what its envelope says (undecodable, nested too deeply, not UTF-8) or whose
+value is not a stream value is rejected: counted by reason in ``stats.rejections`` (a
+:class:`rap_sdk.rejections.Rejections`), logged rate-limited and reported as a
+``rap.Rejection`` on ``rap/<system>/log/<node>`` (at most one record per key a second,
+with how many since); the next sample is taken.
 
 Outputs: each output that ticks is published as a ``rap.TrustOutput`` on
 ``rap/<system>/trust/<stream>``, sealed by :class:`rap_sdk.Sealer` (source: the node id),
@@ -66,10 +75,11 @@ so any node can subscribe to it typed. Verdicts (a session with ``explain=True``
 ``trigger.<n>``), sealed the same way; ``rap/<system>/trust/*/verdict`` subscribes to
 them all, ``rap/<system>/trust/*`` to the outputs alone.
 
-Hot swap: a queryable on ``rap/<system>/admin/<node>/swap`` (``node`` defaults to
-``trust_checker``). The query's payload is a sealed ``rap.TrustSpecUpdate``; the reply a
-sealed ``rap.TrustSpecStatus`` (``ok``, or the spec's ``problems``; the old spec keeps
-running then). A malformed request gets an error reply saying why.
+Hot swap: a queryable on ``rap/<system>/admin/<node>/swap`` (``node``, the session's,
+defaults to ``trust_checker``). The query's payload is a sealed ``rap.TrustSpecUpdate``
+of at most ``MAX_SAMPLE_BYTES``; the reply a sealed ``rap.TrustSpecStatus`` (``ok``, or
+the spec's ``problems``; the old spec keeps running then). A malformed request is
+rejected (counted as above) and gets an error reply saying why.
 """
 
 from __future__ import annotations
@@ -77,7 +87,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Final
 
@@ -86,6 +96,7 @@ import msgspec
 from anyio.abc import TaskStatus
 from rap_schemas import (
     KnowledgeAccess,
+    Rejection,
     StageTrace,
     TrustOutput,
     TrustSpecStatus,
@@ -94,11 +105,20 @@ from rap_schemas import (
     Verdict,
     keys,
 )
+from rap_schemas.limits import (
+    DECODE_ERRORS,
+    MAX_DEPTH,
+    MAX_SAMPLE_BYTES,
+    DecodeRejected,
+    SafeDecoder,
+    decode_failure,
+)
 from rap_sdk import Fabric, InboxPolicy, Opener, Overflow, QueryRequest, RapError, Reply, Sealer
-from rap_sdk.envelope import TypedEnvelope, typed_decoder
+from rap_sdk.envelope import TypedEnvelope
 from rap_sdk.errors import QueryError, RejectedSample
 from rap_sdk.fabric import Sample, Subscription
 from rap_sdk.keyexpr import intersects, validate
+from rap_sdk.rejections import Rejections, Throttle
 
 from ..config import FabricConfig
 from ..values import BOTTOM, ValueError_, from_plain, to_plain
@@ -106,18 +126,28 @@ from .ports import OutputLike
 from .session import Session
 from .ticks import Arrival
 
-__all__ = ["FabricStats", "FabricTransport", "default_values", "event_stream_name"]
+__all__ = [
+    "MAX_BATCH",
+    "SWAP_TIMEOUT",
+    "FabricTransport",
+    "FabricTransportStats",
+    "default_values",
+    "event_stream_name",
+]
 
 log = logging.getLogger(__name__)
 
 _trace_body = msgspec.msgpack.Decoder(StageTrace).decode
 _access_body = msgspec.msgpack.Decoder(KnowledgeAccess).decode
 _verdict_body = msgspec.msgpack.Decoder(Verdict).decode
-_any_body = msgspec.msgpack.Decoder().decode
-_open_update = typed_decoder(TrustSpecUpdate)
+"""A ``rap.Verdict`` of any plan type: its plan stays plain data, never looked at."""
+_any_body: Callable[[bytes], Any] = SafeDecoder(Any, max_depth=MAX_DEPTH, what="body").decode
+_open_update: Callable[[bytes], TypedEnvelope[TrustSpecUpdate]] = SafeDecoder(
+    TypedEnvelope[TrustSpecUpdate], max_bytes=MAX_SAMPLE_BYTES, what="swap request"
+).decode
 SWAP_TIMEOUT: Final = 4.0
 """Seconds a swap query waits for the session (under Zenoh's 5 s handler deadline)."""
-_BATCH: Final = 256
+MAX_BATCH: Final = 256
 """At most this many waiting samples are taken in one go."""
 
 
@@ -127,13 +157,23 @@ def event_stream_name(name: str) -> str:
 
 
 def _plain(x: Any) -> Any:
-    """Untyped msgpack data to plain JSON-like data: bytes become hex strings."""
+    """Untyped msgpack data (depth-checked) to plain JSON-like data: bytes become hex
+    strings, number keys their text; :class:`ValueError_` for any other map key."""
     if isinstance(x, bytes | bytearray | memoryview):
         return bytes(x).hex()
     if isinstance(x, list):
         return [_plain(e) for e in x]
     if isinstance(x, dict):
-        return {str(k): _plain(v) for k, v in x.items()}
+        out: dict[str, Any] = {}
+        for k, v in x.items():
+            if type(k) is not str:
+                if type(k) not in (int, float, bool):
+                    raise ValueError_(
+                        f"a map key is a {type(k).__name__} - use string (or number) keys"
+                    )
+                k = str(k)
+            out[k] = _plain(v)
+        return out
     return x
 
 
@@ -147,8 +187,8 @@ def default_values(
     kind: keys.Kind, name: str, env: TypedEnvelope[msgspec.Raw]
 ) -> dict[str, object]:
     """The streams a trace record or an event sets (the table in the module docstring).
-    Raises ``msgspec.ValidationError``/``DecodeError`` for a body that is not what its
-    envelope says."""
+    Raises one of ``rap_schemas.limits.DECODE_ERRORS`` for a body that is not what its
+    envelope says (wrong fields, undecodable, nested too deeply, not UTF-8)."""
     out: dict[str, object] = {}
     if kind is keys.Kind.TRACE:
         if env.type == StageTrace.TYPE:
@@ -194,7 +234,10 @@ class _Route:
 
 
 @dataclass(slots=True)
-class FabricStats:
+class FabricTransportStats:
+    rejections: Rejections
+    """Samples and swap requests refused, counted by reason (``rejections.by_reason``,
+    ``rejections.total``)."""
     samples: int = 0
     duplicates: int = 0
     published: int = 0
@@ -206,33 +249,47 @@ class FabricStats:
     verdicts: int = 0
     """Verdicts published."""
     swap_queries: int = 0
+    records: int = 0
+    """``rap.Rejection`` records published on ``rap/<system>/log/<node>``."""
 
 
 class FabricTransport:
-    """Feeds ``session`` from the fabric and publishes its outputs there (it adds itself
-    to the session's sinks). Run :meth:`run` in a task group, next to ``session.run``."""
+    """Feeds ``session`` from ``fabric`` and publishes its outputs there (it adds itself
+    to the session's sinks). Run :meth:`run` in a task group, next to ``session.run``
+    (:func:`trust_checker.service.open_service` does both). The node id (envelope
+    source, admin key) is the session's."""
 
-    def __init__(self, session: Session, fabric: Fabric, config: FabricConfig) -> None:
+    def __init__(self, session: Session, config: FabricConfig, *, fabric: Fabric) -> None:
         self.session = session
         self.fabric = fabric
         self.config = config
-        self.stats = FabricStats()
+        self.node = session.node
+        self.stats = FabricTransportStats(
+            Rejections(session.node, log, clock=session.clock.time_ns)
+        )
         self.system = config.system
         keys.system_pattern(config.system)  # validates the system name
-        self.swap_key = keys.admin(config.system, config.node, "swap")
+        self.swap_key = keys.admin(config.system, self.node, "swap")
+        self.log_key = keys.log(config.system, self.node)
         for stream, inp in config.inputs.items():
             try:
                 validate(inp.key)
             except ValueError as exc:
-                raise ValueError(f"fabric input {stream!r}: {exc}") from None
-        self._sealer = Sealer(config.node, session.clock)
+                raise ValueError(
+                    f"fabric input {stream!r}: {exc} - write a key expression such as "
+                    f"'rap/{config.system}/data/<topic>'"
+                ) from None
+        self._sealer = Sealer(self.node, session.clock)
         self._opener = Opener()
+        self._throttle = Throttle()
         self._out_keys: dict[str, str] = {}
         self._verdict_keys: dict[str, str] = {}
         self._routes: dict[str, _Route] = {}
         self._dropped_seen: dict[str, int] = {}
         self._lost_logged = (-math.inf, 0)
         """When the last loss was logged, and stats.lost then."""
+        self._records: list[Rejection] = []
+        """Rejection records due, published after the batch being taken."""
         session.sinks.append(self)
 
     @property
@@ -296,13 +353,16 @@ class FabricTransport:
             for sub in subs:
                 sub.close()
             queryable.undeclare()
+            with anyio.move_on_after(1.0, shield=True):
+                self._records += self.stats.rejections.flush()
+                await self._publish_records()
 
     async def _pump(self, sub: Subscription) -> None:
         """Samples in arrival order. When the checker falls behind, what has piled up is
-        taken in one go (up to ``_BATCH``) and handed to the session as one batch: one
-        hand-off between tasks per batch instead of per sample. Samples the inbox had to
-        drop (it was full) are counted and logged: ticks after a gap judge a trace with
-        records missing."""
+        taken in one go (up to :data:`MAX_BATCH`) and handed to the session as one batch:
+        one hand-off between tasks per batch instead of per sample. Samples the inbox had
+        to drop (it was full) are counted and logged: ticks after a gap judge a trace
+        with records missing."""
         async for first in sub:
             arrivals: list[Arrival] = []
             sample: Sample | None = first
@@ -312,10 +372,12 @@ class FabricTransport:
                 if arrival is not None:
                     arrivals.append(arrival)
                 n += 1
-                sample = sub.get_nowait() if n < _BATCH else None
+                sample = sub.get_nowait() if n < MAX_BATCH else None
             self._gaps(sub)
             if arrivals:
                 await self.session.submit_many(arrivals)
+            if self._records:
+                await self._publish_records()
 
     def _gaps(self, sub: Subscription) -> None:
         """Count what ``sub``'s inbox dropped since the last look; log it as an error at
@@ -341,27 +403,64 @@ class FabricTransport:
             self.config.inbox,
         )
 
+    # -- rejections ------------------------------------------------------------------
+
+    def _reject(self, key: str, reason: str, *, source: str = "", type_: str = "") -> None:
+        """Count a rejection; a record due is published after the current batch."""
+        rec = self.stats.rejections.reject(key, reason, source=source, type=type_)
+        if rec is not None:
+            self._records.append(rec)
+
+    async def _publish_records(self) -> None:
+        records, self._records = self._records, []
+        for rec in records:
+            payload, _ = self._sealer.seal_message(self.log_key, rec)
+            try:
+                await self.fabric.publish(
+                    self.log_key, payload, timeout=self.config.publish_timeout
+                )
+            except RapError as exc:
+                self.stats.dropped += 1
+                if self._throttle.hit(self.log_key):
+                    log.warning("fabric: rejection record not published: %s", exc)
+                continue
+            self.stats.records += 1
+
+    # -- input -----------------------------------------------------------------------
+
     def _arrival(self, sample: Sample) -> Arrival | None:
         key = sample.key
         route = self._route(key)
         if route.kind is None and not route.explicit:
             return None  # a key no input reads (data, knowledge, logs, our own outputs)
         self.stats.samples += 1
+        size = len(sample.payload)
+        if size > MAX_SAMPLE_BYTES:
+            self._reject(
+                key,
+                f"sample of {size} bytes is over the limit of {MAX_SAMPLE_BYTES} - send "
+                "smaller messages",
+            )
+            return None
         try:
             env = self._opener.open(key, sample.payload)
         except RejectedSample as exc:
-            self.session.reject(key, exc.reason)
+            self._reject(key, exc.reason, source=exc.source, type_=exc.type)
             return None
         if env is None:
             self.stats.duplicates += 1
             return None
         try:
             values = self._values(route, env)
-        except (msgspec.ValidationError, msgspec.DecodeError) as exc:
-            self.session.reject(key, f"invalid {env.type} body from {env.source!r}: {exc}")
+        except DecodeRejected as exc:
+            self._reject(key, f"{env.type} {exc.reason}", source=env.source, type_=env.type)
+            return None
+        except DECODE_ERRORS as exc:
+            reason = f"invalid {env.type} body: {decode_failure(exc)}"
+            self._reject(key, reason, source=env.source, type_=env.type)
             return None
         except ValueError_ as exc:
-            self.session.reject(key, f"{env.type} from {env.source!r}: {exc}")
+            self._reject(key, f"{env.type}: {exc}", source=env.source, type_=env.type)
             return None
         if not values:
             return None
@@ -372,7 +471,7 @@ class FabricTransport:
         if route.kind is not None:
             values.update(default_values(route.kind, route.name, env))
         if route.explicit:
-            body = _plain(_any_body(env.body))
+            body = _plain(_any_body(env.body))  # depth-checked before _plain recurses
             for stream, fld in route.explicit:
                 if fld is None:
                     values[stream] = from_plain(body)
@@ -382,7 +481,7 @@ class FabricTransport:
                     have = sorted(body) if isinstance(body, dict) else "none"
                     raise ValueError_(
                         f"stream {stream!r} reads field {fld!r}, which the body does not "
-                        f"have (fields: {have})"
+                        f"have (fields: {have}) - fix the input's field or the sender"
                     )
         return values
 
@@ -392,15 +491,17 @@ class FabricTransport:
         self.stats.swap_queries += 1
         try:
             env = _open_update(request.payload)
-        except (msgspec.ValidationError, msgspec.DecodeError) as exc:
-            self.session.reject(self.swap_key, f"swap request: {exc}")
+        except DecodeRejected as exc:
+            self._reject(self.swap_key, exc.reason)
+            await self._publish_records()
             raise QueryError(
-                f"swap request refused: {exc}; send a sealed rap.TrustSpecUpdate"
+                f"swap request refused: {exc.reason} - send a sealed {TrustSpecUpdate.TYPE}"
             ) from None
         if env.type != TrustSpecUpdate.TYPE:
-            raise QueryError(
-                f"swap request refused: expected type {TrustSpecUpdate.TYPE}, got {env.type!r}"
-            )
+            reason = f"swap request: expected type {TrustSpecUpdate.TYPE}, got {env.type!r}"
+            self._reject(self.swap_key, reason, source=env.source, type_=env.type)
+            await self._publish_records()
+            raise QueryError(f"{reason} - send a sealed {TrustSpecUpdate.TYPE}")
         update: TrustSpecUpdate = env.body
         status = await self.session.request_swap(
             update.spec,
@@ -412,6 +513,17 @@ class FabricTransport:
         return [Reply(self.swap_key, payload)]
 
     # -- the sink --------------------------------------------------------------------
+
+    async def _publish(self, key: str, payload: bytes, what: str) -> bool:
+        try:
+            await self.fabric.publish(key, payload, timeout=self.config.publish_timeout)
+        except RapError as exc:
+            self.stats.dropped += 1
+            n = self._throttle.hit(key)
+            if n:
+                log.warning("fabric: %d %s(s) on %s not published: %s", n, what, key, exc)
+            return False
+        return True
 
     async def outputs(self, outs: Sequence[OutputLike]) -> None:
         for out in outs:
@@ -427,14 +539,8 @@ class FabricTransport:
                 deferred=deferred,
             )
             payload, _ = self._sealer.seal_message(key, msg)
-            try:
-                await self.fabric.publish(key, payload, timeout=self.config.publish_timeout)
-            except RapError as exc:
-                self.stats.dropped += 1
-                if self.stats.dropped <= 5 or self.stats.dropped % 1000 == 0:
-                    log.warning("fabric: output on %s not published: %s", key, exc)
-                continue
-            self.stats.published += 1
+            if await self._publish(key, payload, "output"):
+                self.stats.published += 1
 
     async def verdicts(self, verdicts: Sequence[TrustVerdict]) -> None:
         for verdict in verdicts:
@@ -445,14 +551,8 @@ class FabricTransport:
                 key = keys.trust(self.system, f"{verdict.stream}/verdict")
                 self._verdict_keys[verdict.stream] = key
             payload, _ = self._sealer.seal_message(key, verdict)
-            try:
-                await self.fabric.publish(key, payload, timeout=self.config.publish_timeout)
-            except RapError as exc:
-                self.stats.dropped += 1
-                if self.stats.dropped <= 5 or self.stats.dropped % 1000 == 0:
-                    log.warning("fabric: verdict on %s not published: %s", key, exc)
-                continue
-            self.stats.verdicts += 1
+            if await self._publish(key, payload, "verdict"):
+                self.stats.verdicts += 1
 
     async def status(self, status: TrustSpecStatus) -> None:
         """Swap outcomes reach the querier in its reply (and the log)."""

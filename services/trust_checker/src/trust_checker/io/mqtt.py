@@ -9,11 +9,12 @@ Outputs: each output that ticks is published on its topic (same rule) as
 ``{"value": <plain JSON>}`` (⊥: ``{"value": null, "deferred": true}``), or tagged
 (``{"Int": 42}``, ⊥: ``"Unknown"``) with ``tagged``; NoVal is never published.
 
-Hot swap: ``{"spec": "<spec text>"}`` (optionally ``"path"``: a name for error messages)
-on ``spec_topic`` (default ``trust/spec``) replaces the running spec between two ticks
-with the streams' history carried over. The outcome, a ``rap.TrustSpecStatus`` as JSON
-(``{"ok": false, "problems": ["<swap>:2:5: ..."], ...}``), is published on
-``status_topic`` (default ``trust/status``); a refused spec leaves the old one running.
+Hot swap: ``{"spec": "<spec text>"}`` (optionally ``"path"``: a name for error messages;
+at most :data:`MAX_SPEC_BYTES`) on ``spec_topic`` (default ``trust/spec``) replaces the
+running spec between two ticks with the streams' history carried over. The outcome, a
+``rap.TrustSpecStatus`` as JSON (``{"ok": false, "problems": ["<swap>:2:5: ..."], ...}``),
+is published on ``status_topic`` (default ``trust/status``); a refused spec leaves the old
+one running.
 
 Verdicts (a session with ``explain=True``): each ``rap.TrustVerdict`` as JSON on
 ``verdict_topic`` (default ``trust/verdicts``; "" for none), e.g.
@@ -21,22 +22,30 @@ Verdicts (a session with ``explain=True``): each ``rap.TrustVerdict`` as JSON on
 approved", "because": [{"expr": "latency < 2.0", "value": false}, {"expr": "latency",
 "value": 2.7, "depth": 1, "input": "latency", "input_tick": 41}]}``.
 
+Bad input (a payload the codec refuses, a spec update that is not one) is rejected: counted
+by reason in ``stats.rejections`` (a :class:`rap_sdk.rejections.Rejections`), logged
+rate-limited, and the next message is taken; a refused spec update is also answered on
+``status_topic``.
+
 The connection is re-established after a loss (pauses doubling from 0.1 s up to
-``reconnect_max``); the monitor and its history live on in the session meanwhile, and
+``reconnect_max``); the runner and its history live on in the session meanwhile, and
 outputs of ticks that happen while disconnected are dropped and counted.
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Final
 
 import aiomqtt
 import anyio
 import msgspec
 from anyio.abc import TaskStatus
 from rap_schemas import TrustSpecStatus, TrustSpecUpdate, TrustVerdict
+from rap_schemas.limits import MAX_SAMPLE_BYTES, DecodeRejected, SafeDecoder
+from rap_sdk.rejections import Rejections, Throttle
 
 from ..config import MqttConfig
 from .codec import CodecError, decode_payload, encode_value
@@ -44,16 +53,24 @@ from .ports import OutputLike
 from .session import Session, SwapRequest
 from .ticks import Arrival
 
-__all__ = ["MqttStats", "MqttTransport"]
+__all__ = ["MAX_SPEC_BYTES", "MqttTransport", "MqttTransportStats"]
 
 log = logging.getLogger(__name__)
 
-_decode_update = msgspec.json.Decoder(TrustSpecUpdate).decode
+MAX_SPEC_BYTES: Final = MAX_SAMPLE_BYTES
+"""Largest spec update taken on the spec topic (bytes of JSON)."""
+
+_decode_update: Callable[[bytes], TrustSpecUpdate] = SafeDecoder(
+    TrustSpecUpdate, protocol="json", max_bytes=MAX_SPEC_BYTES, what="spec update"
+).decode
 _encode = msgspec.json.Encoder().encode
 
 
 @dataclass(slots=True)
-class MqttStats:
+class MqttTransportStats:
+    rejections: Rejections
+    """Payloads refused (input values the codec cannot read, spec updates that are not
+    one), counted by reason (``rejections.by_reason``, ``rejections.total``)."""
     connects: int = 0
     published: int = 0
     dropped: int = 0
@@ -67,7 +84,8 @@ class MqttTransport:
     def __init__(self, session: Session, config: MqttConfig) -> None:
         self.session = session
         self.config = config
-        self.stats = MqttStats()
+        self.stats = MqttTransportStats(Rejections(f"{session.node} (mqtt)", log))
+        self._throttle = Throttle()
         self._client: aiomqtt.Client | None = None
         self._subscribed: set[str] = set()
         self._routes: dict[str, list[str]] = {}
@@ -96,7 +114,7 @@ class MqttTransport:
     async def _sync_subscriptions(self, client: aiomqtt.Client) -> None:
         """Subscribe to the running spec's input topics (and the spec topic); drop the
         topics no input needs any more."""
-        self._routes = self._input_routes(self.session.monitor.inputs)
+        self._routes = self._input_routes(self.session.runner.inputs)
         wanted = {*self._routes, self.config.spec_topic}
         timeout = self.config.timeout
         for topic in sorted(wanted - self._subscribed):
@@ -160,7 +178,7 @@ class MqttTransport:
         try:
             value = decode_payload(payload)
         except CodecError as exc:
-            self.session.reject(topic, str(exc))
+            self.stats.rejections.reject(topic, exc.reason)
             return
         await self.session.submit(
             Arrival(dict.fromkeys(streams, value), self.session.clock.time_ns(), topic)
@@ -169,20 +187,21 @@ class MqttTransport:
     async def _on_spec(self, topic: str, payload: bytes) -> None:
         try:
             update = _decode_update(payload)
-        except (msgspec.ValidationError, msgspec.DecodeError) as exc:
+        except DecodeRejected as exc:
             reason = (
-                f'spec update on {topic!r} refused: {exc}; send {{"spec": "<spec text>"}} as JSON'
+                f"spec update on {topic!r} refused: {exc.reason} - send "
+                '{"spec": "<spec text>"} as JSON'
             )
-            self.session.reject(topic, reason)
+            self.stats.rejections.reject(topic, reason)
             await self.status(
                 TrustSpecStatus(
                     ok=False,
                     node=self.session.node,
                     ts=self.session.clock.time_ns(),
-                    tick=self.session.monitor.tick,
+                    tick=self.session.runner.tick,
                     problems=[reason],
-                    inputs=list(self.session.monitor.inputs),
-                    outputs=list(self.session.monitor.outputs),
+                    inputs=list(self.session.runner.inputs),
+                    outputs=list(self.session.runner.outputs),
                 )
             )
             return
@@ -200,8 +219,9 @@ class MqttTransport:
             await client.publish(topic, payload, qos=self.config.qos, timeout=self.config.timeout)
         except aiomqtt.MqttError as exc:
             self.stats.dropped += 1
-            if self.stats.dropped <= 5 or self.stats.dropped % 1000 == 0:
-                log.warning("mqtt: publish on %s failed: %s", topic, exc)
+            n = self._throttle.hit(topic)
+            if n:
+                log.warning("mqtt: %d publish(es) on %s failed: %s", n, topic, exc)
             return
         self.stats.published += 1
 

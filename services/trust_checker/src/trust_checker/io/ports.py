@@ -1,18 +1,23 @@
-"""What the I/O layer needs from a monitor and gives its outputs to (Protocols), so that
-transports can be tested with a small hand-written monitor and a recording sink."""
+"""What the I/O layer needs from a runner and gives its outputs to (Protocols), so that
+transports can be tested with a small hand-written runner and a recording sink.
+
+The wall clock is :class:`rap_sdk.envelope.Clock` (``time_ns()``, UTC nanoseconds), the
+one every RAP component injects.
+"""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from typing import Any, Protocol, runtime_checkable
 
+from anyio.abc import TaskStatus
 from rap_schemas import TrustSpecStatus, TrustVerdict
 
-__all__ = ["Clock", "MonitorLike", "OutputLike", "Sink", "SpecLoader", "VerdictSink"]
+__all__ = ["OutputLike", "RunnerLike", "RunningSink", "Sink", "SpecLoader", "VerdictSink"]
 
 
 class OutputLike(Protocol):
-    """One output that ticked (``trust_checker.monitor.Output``)."""
+    """One output that ticked (``trust_checker.engine.Output``)."""
 
     @property
     def stream(self) -> str: ...
@@ -24,8 +29,8 @@ class OutputLike(Protocol):
     def ts_ns(self) -> int | None: ...
 
 
-class MonitorLike(Protocol):
-    """The part of ``trust_checker.monitor.Monitor`` the I/O layer uses."""
+class RunnerLike(Protocol):
+    """The part of :class:`trust_checker.engine.SpecRunner` the I/O layer uses."""
 
     @property
     def inputs(self) -> Sequence[str]: ...
@@ -38,8 +43,8 @@ class MonitorLike(Protocol):
         """One tick; ``InputError`` for a bad input (tick not taken), ``EvalError`` for a
         run-time error (that tick's outputs lost)."""
 
-    def swap(self, spec: Any) -> MonitorLike:
-        """A monitor for ``spec`` with the streams' history carried over; ``SpecError``."""
+    def swap(self, spec: Any) -> RunnerLike:
+        """A runner for ``spec`` with the streams' history carried over; ``SpecError``."""
 
     def next_due(self, ts: int) -> int | None:
         """When (tick time, ns) a periodic output is next due after ``ts``; None: never."""
@@ -48,11 +53,6 @@ class MonitorLike(Protocol):
 class SpecLoader(Protocol):
     def __call__(self, text: str, path: str) -> Any:
         """Parse and check a spec; raise ``SpecError`` with every problem."""
-
-
-class Clock(Protocol):
-    def time_ns(self) -> int:
-        """UTC wall clock, integer nanoseconds."""
 
 
 class Sink(Protocol):
@@ -73,3 +73,12 @@ class VerdictSink(Protocol):
     async def verdicts(self, verdicts: Sequence[TrustVerdict]) -> None:
         """The verdicts of one tick (outputs that turned false, triggers that fired),
         after that tick's outputs."""
+
+
+@runtime_checkable
+class RunningSink(Protocol):
+    """A sink with a task of its own (the console's writer):
+    :func:`trust_checker.service.open_service` starts its ``run`` next to the session."""
+
+    async def run(self, *, task_status: TaskStatus[None] = ...) -> None:
+        """Serve until cancelled; ``task_status.started()`` once ready."""

@@ -1,20 +1,22 @@
-"""A running checker: one monitor fed by transports, its outputs given to sinks.
+"""A running checker: one spec runner fed by transports, its outputs given to sinks.
 
 Transports (MQTT, the fabric) turn messages into :class:`~.ticks.Arrival` values and
 spec updates into :class:`SwapRequest` and hand both to :meth:`Session.submit` (or
 several arrivals at once to :meth:`Session.submit_many`, one hand-off for a transport
 catching up), in arrival order, through one bounded stream; :meth:`Session.run` is the
-only task that touches the monitor. It applies the tick policy, drives periodic outputs (it waits,
-with a deadline, until the monitor's ``next_due``, then steps with no inputs) and swaps
-specs between ticks, so a swap never splits a tick.
+only task that touches the runner. It applies the tick policy, drives periodic outputs
+(it waits, with a deadline, until the runner's ``next_due``, then steps with no inputs)
+and swaps specs between ticks, so a swap never splits a tick.
 
-Bad input never stops the session: a payload a transport cannot read is
-:meth:`Session.reject`-ed, an input the monitor refuses (``InputError``) or a tick that
-fails (``EvalError``) is counted and logged (rate-limited), and the next message is
-taken. A refused spec update leaves the running spec in place.
+Bad input never stops the session: a payload a transport cannot read is rejected by the
+transport (counted by reason in its ``stats.rejections``), an input the runner refuses
+(``InputError``) or a tick that fails (``EvalError``) is counted here and logged
+(rate-limited: the first at once, then at most one line a second with how many came
+since), and the next message is taken. A refused spec update leaves the running spec in
+place.
 
-With ``explain=True`` (a real :class:`~trust_checker.monitor.Monitor` only) the session
-steps the monitor through an :class:`~trust_checker.explain.Explainer` and gives each
+With ``explain=True`` (a real :class:`~trust_checker.engine.SpecRunner` only) the session
+steps the runner through an :class:`~trust_checker.explain.Explainer` and gives each
 tick's verdicts (Bool outputs that turned false, triggers that fired, as
 ``rap.TrustVerdict``) to every sink that has a ``verdicts`` method
 (:class:`~.ports.VerdictSink`), after that tick's outputs.
@@ -24,7 +26,6 @@ from __future__ import annotations
 
 import logging
 import math
-import time
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -33,24 +34,21 @@ from typing import Final
 import anyio
 from anyio.abc import TaskStatus
 from rap_schemas import TrustSpecStatus, TrustVerdict
+from rap_sdk.envelope import Clock, SystemClock
+from rap_sdk.rejections import Throttle
 
+from ..engine import SpecRunner
 from ..errors import EvalError, InputError, SpecError, TrustError
 from ..explain import Explainer, to_message
-from ..monitor import Monitor
-from .ports import Clock, MonitorLike, OutputLike, Sink, SpecLoader, VerdictSink
+from .ports import OutputLike, RunnerLike, Sink, SpecLoader, VerdictSink
 from .ticks import MESSAGE, Arrival, TickPolicy, merge
 
-__all__ = ["Session", "SessionStats", "SwapRequest", "SystemClock"]
+__all__ = ["DEFAULT_CAPACITY", "Session", "SessionStats", "SwapRequest"]
 
 log = logging.getLogger(__name__)
 
 DEFAULT_CAPACITY: Final = 1024
-
-
-class SystemClock:
-    @staticmethod
-    def time_ns() -> int:
-        return time.time_ns()
+"""Items (arrivals, batches, swap requests) that may wait for the session."""
 
 
 @dataclass(slots=True)
@@ -58,14 +56,12 @@ class SessionStats:
     messages: int = 0
     """Arrivals submitted (each message that set at least one stream)."""
     ticks: int = 0
-    """Ticks the monitor took (input and periodic)."""
+    """Ticks the runner took (input and periodic)."""
     periodic_ticks: int = 0
     ignored: int = 0
     """Messages (or merged bursts) that set none of the spec's inputs: not a tick."""
-    rejected: int = 0
-    """Payloads a transport could not read (bad JSON, bad envelope, bad tagged value)."""
     input_errors: int = 0
-    """Ticks refused by the monitor (a value of the wrong type)."""
+    """Ticks refused by the runner (a value of the wrong type, an unknown stream)."""
     eval_errors: int = 0
     outputs: int = 0
     verdicts: int = 0
@@ -85,23 +81,6 @@ class SwapRequest:
     result: TrustSpecStatus | None = None
 
 
-class _RateLog:
-    """Log the first few occurrences of a kind of trouble, then every 1000th."""
-
-    __slots__ = ("_seen",)
-
-    def __init__(self) -> None:
-        self._seen: dict[str, int] = {}
-
-    def __call__(self, kind: str, msg: str, *args: object) -> None:
-        n = self._seen[kind] = self._seen.get(kind, 0) + 1
-        if n <= 5 or n % 1000 == 0:
-            if n == 1:
-                log.warning(msg, *args)
-            else:
-                log.warning("%s (%d so far)", msg % args, n)
-
-
 _TIMEOUT: Final = object()
 _CLOSED: Final = object()
 
@@ -117,13 +96,13 @@ _Item = Arrival | SwapRequest | _Batch
 
 
 class Session:
-    """Owns the monitor. ``loader(text, path)`` parses and checks a new spec for hot swap;
+    """Owns the runner. ``loader(text, path)`` parses and checks a new spec for hot swap;
     ``sinks`` get every tick's outputs and every swap's status, and with ``explain``
     its verdicts (see the module docstring)."""
 
     def __init__(
         self,
-        monitor: MonitorLike,
+        runner: RunnerLike,
         *,
         loader: SpecLoader,
         sinks: Sequence[Sink] = (),
@@ -133,25 +112,26 @@ class Session:
         capacity: int = DEFAULT_CAPACITY,
         explain: bool = False,
     ) -> None:
-        self.monitor = monitor
+        self.runner = runner
         self.explainer: Explainer | None = None
         if explain:
-            if not isinstance(monitor, Monitor):
+            if not isinstance(runner, SpecRunner):
                 raise TypeError(
-                    f"explain=True needs a trust_checker Monitor, got {type(monitor).__name__}"
+                    f"explain=True needs a trust_checker SpecRunner, got {type(runner).__name__}"
+                    " - pass explain=False, or a SpecRunner"
                 )
-            self.explainer = Explainer(monitor)
+            self.explainer = Explainer(runner)
         self.loader = loader
         self.sinks = list(sinks)
         self.policy = policy
         self.clock: Clock = clock or SystemClock()
         self.node = node
         self.stats = SessionStats()
-        self._rate = _RateLog()
+        self._throttle = Throttle()
         self._send, self._receive = anyio.create_memory_object_stream[_Item](capacity)
         self._backlog: deque[Arrival] = deque()
         """The rest of a batch being taken (before anything queued after it)."""
-        self._inputs: tuple[MonitorLike, frozenset[str]] | None = None
+        self._inputs: tuple[RunnerLike, frozenset[str]] | None = None
         self._in_flight = 0
         """Items submitted and not yet taken from the stream."""
         self._last_ts = 0
@@ -201,14 +181,14 @@ class Session:
         assert req.result is not None
         return req.result
 
-    def reject(self, origin: str, reason: str) -> None:
-        """A payload that could not be read: counted and logged (rate-limited)."""
-        self.stats.rejected += 1
-        self._rate(f"reject:{origin}", "rejected a message on %s: %s", origin, reason)
-
     def close(self) -> None:
         """No more input: :meth:`run` returns once it has taken what was queued."""
         self._send.close()
+
+    def discard(self) -> None:
+        """Release a session that will never run (its queue, both ends)."""
+        self._send.close()
+        self._receive.close()
 
     async def wait_idle(self, timeout: float = 5.0) -> None:
         """Wait until everything submitted so far has been taken."""
@@ -216,7 +196,7 @@ class Session:
             while not self.idle.is_set():
                 await self.idle.wait()
 
-    # -- the one task that runs the monitor ----------------------------------------------
+    # -- the one task that runs the runner -----------------------------------------------
 
     async def run(self, *, task_status: TaskStatus[None] = anyio.TASK_STATUS_IGNORED) -> None:
         task_status.started()
@@ -288,13 +268,13 @@ class Session:
         return max(ts, self._last_ts)  # tick times never go back
 
     def _periodic_delay(self) -> float | None:
-        due = self.monitor.next_due(self._now())
+        due = self.runner.next_due(self._now())
         if due is None or due <= self._last_periodic:
             return None
         return max(due - self.clock.time_ns(), 0) / 1e9
 
     async def _periodic(self) -> None:
-        due = self.monitor.next_due(self._now())
+        due = self.runner.next_due(self._now())
         if due is None or due <= self._last_periodic:
             return
         self._last_periodic = due
@@ -303,8 +283,8 @@ class Session:
 
     async def _step(self, arrival: Arrival) -> None:
         cached = self._inputs
-        if cached is None or cached[0] is not self.monitor:
-            cached = self._inputs = (self.monitor, frozenset(self.monitor.inputs))
+        if cached is None or cached[0] is not self.runner:
+            cached = self._inputs = (self.runner, frozenset(self.runner.inputs))
         inputs = cached[1]
         values = {k: v for k, v in arrival.values.items() if k in inputs}
         if not values:
@@ -323,14 +303,14 @@ class Session:
                 if explained:
                     verdicts = [to_message(v) for v in explained]
             else:
-                outs = self.monitor.step(values, ts)
+                outs = self.runner.step(values, ts)
         except InputError as exc:
             self.stats.input_errors += 1
-            self._rate("input", "input from %s not taken: %s", origin or "?", exc)
+            self._warn("input", "input from %s not taken: %s", origin or "?", exc)
             return
         except EvalError as exc:
             self.stats.eval_errors += 1
-            self._rate("eval", "tick failed (%s): %s", origin or "?", exc)
+            self._warn("eval", "tick failed (%s): %s", origin or "?", exc)
             return
         self.stats.ticks += 1
         if outs:
@@ -339,6 +319,13 @@ class Session:
                 await sink.outputs(outs)
         if verdicts:
             await self._verdicts(verdicts)
+
+    def _warn(self, kind: str, msg: str, *args: object) -> None:
+        """Log a warning of this kind at once the first time, then at most once a second
+        with how many came since."""
+        n = self._throttle.hit(kind)
+        if n:
+            log.warning("%s (%d like it since the last report)", msg % args, n)
 
     async def _verdicts(self, verdicts: Sequence[TrustVerdict]) -> None:
         self.stats.verdicts += len(verdicts)
@@ -352,15 +339,15 @@ class Session:
             spec = self.loader(req.text, req.path)
             if self.explainer is not None:
                 explainer = self.explainer.swap(spec)
-                new: MonitorLike = explainer.monitor
+                new: RunnerLike = explainer.runner
             else:
-                new = self.monitor.swap(spec)
+                new = self.runner.swap(spec)
         except SpecError as exc:
             problems = [str(p) for p in exc.problems] or [str(exc)]
         except TrustError as exc:
             problems = [str(exc)]
         else:
-            self.monitor = new
+            self.runner = new
             if self.explainer is not None:
                 self.explainer = explainer
         ok = not problems
@@ -369,9 +356,9 @@ class Session:
             log.info(
                 "spec swapped (from %s) at tick %d: inputs %s, outputs %s",
                 req.origin or "?",
-                self.monitor.tick,
-                list(self.monitor.inputs),
-                list(self.monitor.outputs),
+                self.runner.tick,
+                list(self.runner.inputs),
+                list(self.runner.outputs),
             )
         else:
             self.stats.swaps_rejected += 1
@@ -384,10 +371,10 @@ class Session:
             ok=ok,
             node=self.node,
             ts=self.clock.time_ns(),
-            tick=self.monitor.tick,
+            tick=self.runner.tick,
             problems=problems,
-            inputs=list(self.monitor.inputs),
-            outputs=list(self.monitor.outputs),
+            inputs=list(self.runner.inputs),
+            outputs=list(self.runner.outputs),
         )
         req.result = status
         req.done.set()

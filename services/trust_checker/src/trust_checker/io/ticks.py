@@ -1,4 +1,4 @@
-"""Tick policies: how arriving messages become the monitor's ticks.
+"""Tick policies: how arriving messages become the spec runner's ticks.
 
 ``message`` (the default, the reference checker's): every message that sets at least
 one input of the spec is one tick. ``window:<duration>`` (e.g. ``window:10ms``): the
@@ -7,8 +7,8 @@ one atomic tick, the last value per stream winning; the tick's time is the first
 message's. A message setting no input of the spec is never a tick.
 
 Every tick carries a wall-clock timestamp (UTC ns, from the injected clock) that the
-monitor gets as ``ts_ns``. Periodic outputs (``out y @ 10Hz``) are driven by the session
-(:mod:`trust_checker.io.session`), which asks the monitor when it is next due.
+runner gets as ``ts_ns``. Periodic outputs (``out y @ 10Hz``) are driven by the session
+(:mod:`trust_checker.io.session`), which asks the runner when it is next due.
 """
 
 from __future__ import annotations
@@ -47,11 +47,11 @@ def parse_duration(text: str) -> int:
     m = _DURATION.fullmatch(text)
     if m is None:
         raise ValueError(
-            f"{text!r} is not a duration; write a number and a unit, e.g. 10ms, 1.5s, 200us, 500ns"
+            f"{text!r} is not a duration - write a number and a unit, e.g. 10ms, 1.5s, 200us, 500ns"
         )
     ns = math.floor(float(m.group(1)) * _UNITS[m.group(2)])
     if ns <= 0 or ns > MAX_WINDOW_NS:
-        raise ValueError(f"duration {text!r} must be above 0 and at most 60s")
+        raise ValueError(f"duration {text!r} is out of range - give one above 0 and at most 60s")
     return ns
 
 
@@ -65,7 +65,7 @@ def parse_tick_policy(text: str) -> TickPolicy:
     if kind == "window" and sep:
         return TickPolicy("window", parse_duration(rest))
     raise ValueError(
-        f"unknown tick policy {text!r}; use 'message' (one message, one tick) or "
+        f"unknown tick policy {text!r} - use 'message' (one message, one tick) or "
         "'window:<duration>' (a burst within the window is one tick), e.g. window:10ms"
     )
 

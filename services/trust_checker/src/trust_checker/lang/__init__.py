@@ -9,7 +9,9 @@ from __future__ import annotations
 import os
 import pathlib
 
-from trust_checker.errors import SpecError
+from rap_schemas.yamlconf import read_text_file
+
+from trust_checker.errors import SpecError, TextFileError
 from trust_checker.lang.ast import Spec
 from trust_checker.lang.check import Limits, check_spec, dependency_order, memory_bound
 from trust_checker.lang.parser import parse_expr, parse_spec
@@ -22,7 +24,28 @@ __all__ = [
     "memory_bound",
     "parse_expr",
     "parse_spec",
+    "read_source",
 ]
+
+
+def read_source(path: str | os.PathLike[str], what: str = "spec") -> str:
+    """The text of a spec or trace file (at most ``rap_schemas.limits.MAX_TEXT_BYTES``).
+    Raises :class:`TextFileError` naming the file (and ``line:col`` of the first byte
+    that is not UTF-8 text) and how to fix it."""
+    try:
+        return read_text_file(path, what=what, error=TextFileError)
+    except TextFileError as exc:
+        # "<where>: what; how" -> "<where>: what - how" (the form of every CLI error)
+        message = str(exc)
+        head, sep, rest = message.partition(": ")
+        if ": cannot read the " in message:
+            rest += " - check the path (and that the file is readable)"
+        else:
+            rest = rest.replace("; ", " - ", 1)
+        raise TextFileError(
+            head + sep + rest, source=exc.source, line=exc.line, column=exc.column
+        ) from None
+
 
 _DEFAULT_LIMITS = Limits()
 
@@ -36,10 +59,11 @@ def load_spec(
     """Parse and check a spec: ``source`` is a file (a :class:`pathlib.Path` or other
     path-like) or the spec text itself; a ``str`` is always text, never opened, so spec
     text from the network can go through here. ``path`` names it in errors (default: the
-    file name, or ``<spec>``). Raises :class:`SpecError` listing every problem."""
+    file name, or ``<spec>``). Raises :class:`SpecError` listing every problem, and
+    :class:`TextFileError` for a file that cannot be read (:func:`read_source`)."""
     if isinstance(source, os.PathLike):
         file = pathlib.Path(source)
-        text = file.read_text(encoding="utf-8")
+        text = read_source(file, "spec")
         where = path if path is not None else str(file)
     else:
         text = str(source)

@@ -6,7 +6,7 @@
   no equation or use of an undeclared name, no stream declared twice;
 - functions: known built-ins with the right number of arguments;
 - types, gradually: declared and literal types flow through the operators; a stream
-  without a declared type, or of type ``Any``, is unknown and passes (the monitor checks
+  without a declared type, or of type ``Any``, is unknown and passes (the runner checks
   its values at run time);
 - no zero-weight dependency cycle (streams that need each other at the same tick);
 - the memory bound (:func:`memory_bound`) within :attr:`Limits.max_history_slots`.

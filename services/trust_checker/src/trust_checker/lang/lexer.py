@@ -1,4 +1,4 @@
-"""Tokens of the spec language.
+"""Tokens of the spec language (:class:`Lexeme`: a token with its place in the source).
 
 The lexer never stops at the first bad character: it records a :class:`Problem` and goes
 on, so one run reports every lexical error. Newlines are not tokens; each token knows
@@ -17,7 +17,7 @@ from typing import Final
 
 from trust_checker.errors import Problem
 
-__all__ = ["DURATION_UNITS", "KEYWORDS", "Token", "source_line", "tokenize"]
+__all__ = ["DURATION_UNITS", "KEYWORDS", "Lexeme", "source_line", "tokenize"]
 
 KEYWORDS: Final = frozenset(
     {"in", "out", "aux", "var", "if", "then", "else", "true", "false", "trigger"}
@@ -69,10 +69,10 @@ _ESCAPES: Final = {"n": "\n", "t": "\t", '"': '"', "\\": "\\"}
 
 
 @dataclass(frozen=True, slots=True)
-class Token:
-    """``kind`` is ``NAME``, ``INT``, ``FLOAT``, ``STR``, ``QTY``, ``EOF``, a keyword or
-    the punctuation itself (``"("``, ``"<="``). ``value`` is the int, float or decoded
-    string; for ``QTY`` it is ``(number, unit)``."""
+class Lexeme:
+    """One token of a spec. ``kind`` is ``NAME``, ``INT``, ``FLOAT``, ``STR``, ``QTY``,
+    ``EOF``, a keyword or the punctuation itself (``"("``, ``"<="``). ``value`` is the
+    int, float or decoded string; for ``QTY`` it is ``(number, unit)``."""
 
     kind: str
     text: str
@@ -106,7 +106,7 @@ class _Lexer:
         self.i = 0
         self.line = 1
         self.col = 1
-        self.tokens: list[Token] = []
+        self.tokens: list[Lexeme] = []
         self.problems: list[Problem] = []
         self.last_line = 0  # line of the last token emitted (for ``bol``)
 
@@ -127,7 +127,7 @@ class _Lexer:
     def emit(self, kind: str, text: str, line: int, col: int, value: object = None) -> None:
         bol = line != self.last_line
         start = self.i - len(text)
-        self.tokens.append(Token(kind, text, line, col, bol, value, start, self.i))
+        self.tokens.append(Lexeme(kind, text, line, col, bol, value, start, self.i))
         self.last_line = line
 
     def run(self) -> None:
@@ -272,7 +272,7 @@ class _Lexer:
         self.advance()
 
 
-def tokenize(text: str, path: str = "<spec>") -> tuple[list[Token], list[Problem]]:
+def tokenize(text: str, path: str = "<spec>") -> tuple[list[Lexeme], list[Problem]]:
     """The tokens of ``text`` (ending with ``EOF``) and the lexical problems found."""
     lx = _Lexer(text, path)
     lx.run()

@@ -27,7 +27,7 @@ from typing import Final, Literal, NoReturn, cast
 from trust_checker.errors import Problem, SpecError
 from trust_checker.lang import ast
 from trust_checker.lang.check import children
-from trust_checker.lang.lexer import DURATION_UNITS, Token, source_line, tokenize
+from trust_checker.lang.lexer import DURATION_UNITS, Lexeme, source_line, tokenize
 from trust_checker.values import INT_MAX, INT_MIN, UNIT
 
 __all__ = ["BINARY", "MAX_DEPTH", "MAX_NESTING", "parse_expr", "parse_spec"]
@@ -99,7 +99,7 @@ class _Fail(Exception):
     """One syntax error, already recorded; unwinds to the statement loop."""
 
 
-def _describe(tok: Token) -> str:
+def _describe(tok: Lexeme) -> str:
     return "the end of the text" if tok.kind == "EOF" else f"'{tok.text}'"
 
 
@@ -116,26 +116,26 @@ class _Parser:
 
     # -- token helpers -------------------------------------------------------------------
 
-    def peek(self, k: int = 0) -> Token:
+    def peek(self, k: int = 0) -> Lexeme:
         return self.tokens[min(self.i + k, len(self.tokens) - 1)]
 
-    def next(self) -> Token:
+    def next(self) -> Lexeme:
         tok = self.tokens[self.i]
         if tok.kind != "EOF":
             self.i += 1
         return tok
 
-    def accept(self, kind: str) -> Token | None:
+    def accept(self, kind: str) -> Lexeme | None:
         if self.peek().kind == kind:
             return self.next()
         return None
 
-    def fail(self, tok: Token, message: str, hint: str = "") -> NoReturn:
+    def fail(self, tok: Lexeme, message: str, hint: str = "") -> NoReturn:
         if tok.kind == "EOF" and self.i > 0:  # point just after the last token
             last = self.tokens[self.i - 1]
             tail = last.text.splitlines()[-1] if last.text else ""
             col = last.col + len(tail) if "\n" not in last.text else len(tail) + 1
-            tok = Token("EOF", "", last.line + last.text.count("\n"), col, False)
+            tok = Lexeme("EOF", "", last.line + last.text.count("\n"), col, False)
         if tok.line not in self.lex_lines:  # a lexical error there says it already
             self.problems.append(
                 Problem(
@@ -144,14 +144,14 @@ class _Parser:
             )
         raise _Fail
 
-    def expect(self, kind: str, what: str, hint: str = "") -> Token:
+    def expect(self, kind: str, what: str, hint: str = "") -> Lexeme:
         tok = self.peek()
         if tok.kind != kind:
             self.fail(tok, f"expected {what}, found {_describe(tok)}", hint)
         return self.next()
 
     @staticmethod
-    def pos(tok: Token) -> ast.Pos:
+    def pos(tok: Lexeme) -> ast.Pos:
         return ast.Pos(tok.line, tok.col)
 
     def see(self, name: str) -> None:
@@ -159,7 +159,7 @@ class _Parser:
             self.seen.add(name)
             self.order.append(name)
 
-    def between(self, first: Token, last: Token) -> str:
+    def between(self, first: Lexeme, last: Lexeme) -> str:
         return self.text[first.start : last.end]
 
     # -- statements ----------------------------------------------------------------------
@@ -363,7 +363,7 @@ class _Parser:
             "write a rate in Hz (out y @ 10Hz) or a period (out y @ 100ms)",
         )
 
-    def period_of(self, tok: Token, number: str) -> int:
+    def period_of(self, tok: Lexeme, number: str) -> int:
         hz = Fraction(number)
         if hz <= 0:
             self.fail(tok, f"rate '{tok.text}' must be more than zero", "e.g. out y @ 10Hz")
@@ -438,7 +438,7 @@ class _Parser:
             self.nesting -= 1
         return ast.Unary(cast(Literal["-", "!"], tok.kind), operand, self.pos(tok))
 
-    def int_range(self, tok: Token, text: str) -> NoReturn:
+    def int_range(self, tok: Lexeme, text: str) -> NoReturn:
         self.fail(
             tok,
             f"integer literal {text} does not fit in 64 bits",
@@ -485,7 +485,7 @@ class _Parser:
             hint = f"'{kind}' belongs to if c then a else b"
         self.fail(tok, f"expected an expression, found {_describe(tok)}", hint)
 
-    def if_(self, tok: Token) -> ast.Expr:
+    def if_(self, tok: Lexeme) -> ast.Expr:
         cond = self.expr()
         self.expect("then", "'then' after the condition of 'if'", "write if c then a else b")
         then = self.expr()
@@ -496,7 +496,7 @@ class _Parser:
         )
         return ast.If(cond, then, self.expr(), self.pos(tok))
 
-    def paren(self, tok: Token) -> ast.Expr:
+    def paren(self, tok: Lexeme) -> ast.Expr:
         if self.accept(")"):
             return ast.Lit(UNIT, self.pos(tok))
         first = self.expr()
@@ -539,7 +539,7 @@ class _Parser:
                 return out
             self.expect(",", f"',' or '{close}' in {what}", f"write {example}")
 
-    def name(self, tok: Token) -> ast.Expr:
+    def name(self, tok: Lexeme) -> ast.Expr:
         name = tok.text
         if (
             name in ("List", "Map")
@@ -571,7 +571,7 @@ class _Parser:
             return ast.Call("timeout", (arg, ast.Lit(ns, self.pos(dur_tok))), pos)
         return ast.Call(name, tuple(self.items(")", f"the arguments of {name}(...)")), pos)
 
-    def eval_(self, tok: Token) -> ast.Expr:
+    def eval_(self, tok: Lexeme) -> ast.Expr:
         source = self.expr()
         ascription: ast.Type | None = None
         scope: tuple[str, ...] | None = None
@@ -629,7 +629,7 @@ class _Parser:
             )
         return ast.Field(node, tok.text, self.pos(tok))
 
-    def aggregate(self, node: ast.Expr, tok: Token) -> ast.Expr:
+    def aggregate(self, node: ast.Expr, tok: Lexeme) -> ast.Expr:
         example = "write x.aggregate(over: 5s, using: count|sum|avg|min|max)"
         self.next()  # "("
         over: int | None = None

@@ -1,6 +1,6 @@
 """Specs shipped with the checker, as package data.
 
-``maplek/*.dsrv``: the MAPLE-K loop's contract (DESIGN section 5), written against the
+``maplek/*.dsrv``: the MAPLE-K loop's contract, written against the
 fabric's default mapping (:mod:`trust_checker.io.fabric`). Each has one Bool output that
 is true while the loop is healthy:
 

@@ -5,17 +5,17 @@ that can be inspected."""
 from __future__ import annotations
 
 import pytest
+from trust_checker.engine import Fired, Output, SpecRunner
 from trust_checker.errors import EvalError, InputError, SpecError
 from trust_checker.lang import Limits, load_spec
 from trust_checker.lang import ast as A
-from trust_checker.monitor import Fired, Monitor, Output
 from trust_checker.values import BOTTOM, NOVAL, UNIT, MapV, StructV, TupleV
 
 SEC = 1_000_000_000
 
 
-def mon(src: str, **kw: object) -> Monitor:
-    return Monitor(load_spec(src, path="t.dsrv"), **kw)  # type: ignore[arg-type]
+def mon(src: str, **kw: object) -> SpecRunner:
+    return SpecRunner(load_spec(src, path="t.dsrv"), **kw)  # type: ignore[arg-type]
 
 
 def vals(outs: list[Output]) -> dict[str, object]:
@@ -38,13 +38,13 @@ def test_step_returns_outputs_with_tick_and_timestamp() -> None:
     assert m.spec.outputs == ("z",)
 
 
-def test_monitor_takes_a_hand_built_spec() -> None:
+def test_runner_takes_a_hand_built_spec() -> None:
     spec = A.Spec(
         decls=(A.Decl("in", "x", A.TName("Int")), A.Decl("out", "y", A.TName("Int"))),
         equations=(A.Equation("y", A.Binary("*", A.Var("x"), A.Lit(2))),),
         order=("x", "y"),
     )
-    m = Monitor(spec)
+    m = SpecRunner(spec)
     assert vals(m.step({"x": 21})) == {"y": 42}
 
 
@@ -55,7 +55,7 @@ def test_a_spec_that_does_not_check_is_rejected() -> None:
         order=("y",),
     )
     with pytest.raises(SpecError, match="unknown stream 'nope'"):
-        Monitor(spec)
+        SpecRunner(spec)
 
 
 def test_unknown_input_is_rejected_and_the_tick_not_taken() -> None:
@@ -112,7 +112,7 @@ def test_noval_input_is_the_same_as_absent() -> None:
     assert m.held("y") is NOVAL
 
 
-def test_run_time_error_names_stream_tick_and_place_and_monitor_goes_on() -> None:
+def test_run_time_error_names_stream_tick_and_place_and_runner_goes_on() -> None:
     m = mon("in a: Int\nin b: Int\nout ok: Int\nout q: Int\nok = a + 1\nq = a / b\n")
     assert vals(m.step({"a": 6, "b": 3})) == {"ok": 7, "q": 2}
     with pytest.raises(EvalError) as err:
@@ -225,7 +225,7 @@ def test_swap_keeps_operator_state_of_unchanged_equations() -> None:
     assert vals(m2.step({"x": 7})) == {"l": 2, "w": True, "extra": 5}
 
 
-def test_swap_to_a_bad_spec_leaves_the_monitor_running() -> None:
+def test_swap_to_a_bad_spec_leaves_the_runner_running() -> None:
     m = mon(SUM)
     m.step({"x": 1, "y": 1})
     bad = A.Spec(

@@ -1,0 +1,71 @@
+"""open_service: what it wires, what it refuses (the transports are tested through it in
+test_io_mqtt.py, test_io_fabric.py, test_hardening.py)."""
+
+from __future__ import annotations
+
+import json
+
+import msgspec
+import pytest
+from rap_sdk import ConfigError, MemoryFabric
+from trust_checker.config import FabricConfig, ServiceConfig
+from trust_checker.console import ConsoleSink
+from trust_checker.engine import SpecRunner
+from trust_checker.io.specs import load_text
+from trust_checker.io.ticks import Arrival, TickPolicy
+from trust_checker.service import open_service
+
+from services.trust_checker.tests.io_support import FakeRunner, FakeSpec, fake_loader
+
+pytestmark = pytest.mark.anyio
+
+SPEC = "in x: Float\nout ok: Bool\nok = x < 2.0\n"
+
+
+async def test_the_spec_runs_and_a_running_sink_is_started_and_drained(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    async with open_service(
+        ServiceConfig(), load_text(SPEC), sinks=[ConsoleSink(explain=True)]
+    ) as s:
+        assert isinstance(s.runner, SpecRunner)
+        assert (s.mqtt, s.fabric) == (None, None)
+        for i, x in enumerate((1.0, 3.0)):
+            await s.session.submit(Arrival({"x": x}, 1_000 + i, "test"))
+        await s.session.wait_idle()
+    captured = capsys.readouterr()
+    assert captured.out == "ok[0] = Bool(true)\nok[1] = Bool(false)\n"
+    (verdict,) = [json.loads(line) for line in captured.err.splitlines()]
+    assert (verdict["stream"], verdict["tick"], verdict["value"]) == ("ok", 1, False)
+    assert s.summary().startswith("2 ticks: 2 outputs, 1 verdicts, 0 rejected")
+
+
+async def test_a_runner_of_ones_own_gives_no_verdicts() -> None:
+    runner = FakeRunner(FakeSpec(("a",), ("s",)))
+    async with open_service(ServiceConfig(node="n1"), runner, loader=fake_loader) as s:
+        assert s.runner is runner
+        assert s.session.explainer is None
+        assert s.session.node == "n1"
+
+
+async def test_a_fabric_and_its_config_go_together() -> None:
+    spec = load_text(SPEC)
+    with_fabric = ServiceConfig(fabric=FabricConfig(system="s"))
+    with pytest.raises(ConfigError, match=r"config\.fabric is set .* - pass fabric=") as err:
+        async with open_service(with_fabric, spec):
+            pass
+    assert "system 's'" in str(err.value)
+    async with MemoryFabric() as fabric:
+        with pytest.raises(ConfigError, match=r"config\.fabric is None - set config\.fabric="):
+            async with open_service(ServiceConfig(), spec, fabric=fabric):
+                pass
+
+
+def test_the_tick_policy_is_checked_when_the_config_is_built() -> None:
+    assert ServiceConfig(tick="window:10ms").policy == TickPolicy("window", 10_000_000)
+    with pytest.raises(ValueError, match="unknown tick policy 'often' - use 'message'"):
+        ServiceConfig(tick="often")
+    with pytest.raises(msgspec.ValidationError, match="unknown tick policy"):
+        msgspec.json.decode(b'{"tick": "often"}', type=ServiceConfig)
+    with pytest.raises(msgspec.ValidationError, match="unknown field `nodes`"):
+        msgspec.json.decode(b'{"nodes": "x"}', type=ServiceConfig)
