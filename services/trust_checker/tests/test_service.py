@@ -69,3 +69,21 @@ def test_the_tick_policy_is_checked_when_the_config_is_built() -> None:
         msgspec.json.decode(b'{"tick": "often"}', type=ServiceConfig)
     with pytest.raises(msgspec.ValidationError, match="unknown field `nodes`"):
         msgspec.json.decode(b'{"nodes": "x"}', type=ServiceConfig)
+
+
+async def test_a_spec_whose_values_grow_without_bound_does_not_stop_the_checker(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """``y`` nests one list deeper every tick: past the depth limit its outputs are not
+    given to the sinks (which convert them recursively), counted as evaluation errors,
+    and the other outputs keep coming."""
+    spec = load_text(
+        "in x: Float\nout ok: Bool\nout y: List<Any>\nok = x < 2.0\ny = [default(y[1], [])]\n"
+    )
+    async with open_service(ServiceConfig(), spec, sinks=[ConsoleSink()]) as s:
+        for i in range(1500):  # deeper than Python's own recursion limit
+            await s.session.submit(Arrival({"x": 1.0}, 1_000 + i, "test"))
+        await s.session.wait_idle()
+    out = capsys.readouterr().out
+    assert out.count("ok[") == 1500
+    assert 1400 < s.session.stats.eval_errors < 1500

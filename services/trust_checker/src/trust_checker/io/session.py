@@ -34,6 +34,7 @@ from typing import Final
 import anyio
 from anyio.abc import TaskStatus
 from rap_schemas import TrustSpecStatus, TrustVerdict
+from rap_schemas.limits import MAX_DEPTH, DecodeRejected, check_depth
 from rap_sdk.envelope import Clock, SystemClock
 from rap_sdk.rejections import Throttle
 
@@ -308,11 +309,22 @@ class Session:
             self.stats.input_errors += 1
             self._warn("input", "input from %s not taken: %s", origin or "?", exc)
             return
-        except EvalError as exc:
+        except (EvalError, RecursionError) as exc:  # a value the spec nested without bound
             self.stats.eval_errors += 1
             self._warn("eval", "tick failed (%s): %s", origin or "?", exc)
             return
         self.stats.ticks += 1
+        deep = [o for o in outs if _too_deep(o.value)]
+        if deep:
+            self.stats.eval_errors += len(deep)
+            self._warn(
+                "deep",
+                "output %s nests lists or maps more than %d levels deep: not given to the "
+                "sinks (the spec builds a value that grows without bound; fix the spec)",
+                deep[0].stream,
+                MAX_DEPTH,
+            )
+            outs = [o for o in outs if o not in deep]
         if outs:
             self.stats.outputs += len(outs)
             for sink in self.sinks:
@@ -380,3 +392,15 @@ class Session:
         req.done.set()
         for sink in self.sinks:
             await sink.status(status)
+
+
+def _too_deep(value: object) -> bool:
+    """An output value nested past :data:`~rap_schemas.limits.MAX_DEPTH` (every sink
+    converts values recursively)."""
+    if not isinstance(value, (tuple, dict)):
+        return False
+    try:
+        check_depth(value, MAX_DEPTH, "output")
+    except DecodeRejected:
+        return True
+    return False
