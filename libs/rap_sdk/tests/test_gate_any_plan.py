@@ -184,3 +184,45 @@ def test_the_plan_type_must_be_known() -> None:
         @legitimate(node)
         async def check(ctx: Context, proposal: PlanProposal) -> str | None:  # type: ignore[type-arg]
             return None
+
+
+async def test_two_plan_types_go_through_two_gates_on_events_of_their_own() -> None:
+    spin_planner, dock_planner = Node("spin-planner", stage="plan"), Node("dock-planner")
+    judge_spin, judge_dock = Node("legit-spin", stage="legitimate"), Node("legit-dock")
+    exe = Node("executor", stage="execute")
+    spin_gate = ApprovalGate(legitimators={"legit-spin"})
+    dock_gate = ApprovalGate(legitimators={"legit-dock"})
+    done: list[str] = []
+
+    @spin_planner.on_event("go")
+    async def p1(ctx: Context) -> None:
+        await propose(ctx, SpinPlan(commands=[]))
+
+    @dock_planner.on_event("go")
+    async def p2(ctx: Context) -> None:
+        await propose(ctx, Dock(station="B"), event="new-dock-plan")
+
+    @legitimate(judge_spin)
+    async def c1(ctx: Context, proposal: PlanProposal[SpinPlan]) -> str | None:
+        return None
+
+    @legitimate(judge_dock, event="new-dock-plan", verdict="dock-verdict", rejected="dock-no")
+    async def c2(ctx: Context, proposal: PlanProposal[Dock]) -> str | None:
+        return None
+
+    @spin_gate.on_approved(exe)
+    async def a1(ctx: Context, proposal: PlanProposal[SpinPlan]) -> None:
+        done.append(proposal.plan.TYPE)
+
+    @dock_gate.on_approved(exe, event="dock-verdict", rejected="dock-no")
+    async def a2(ctx: Context, proposal: PlanProposal[Dock]) -> None:
+        done.append(proposal.plan.TYPE)
+
+    async with Harness(system=S) as h:
+        await h.start(spin_planner, dock_planner, judge_spin, judge_dock, exe)
+        await h.emit("go")
+        await h.wait_for(lambda r: len(done) == 2)
+        assert sorted(done) == ["app.Dock/1", "rap.SpinPlan/1"]
+        assert not h.of(keys.Kind.EVENT, PLAN_REJECTED)
+        assert not h.of(keys.Kind.EVENT, "dock-no")
+        assert (spin_gate.stats.malformed, dock_gate.stats.malformed) == (0, 0)

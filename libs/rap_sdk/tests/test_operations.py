@@ -7,21 +7,31 @@ import logging
 
 import anyio
 import pytest
-from rap_schemas import keys
+from rap_schemas import Message, keys
 from rap_sdk import (
     Context,
+    HandlerError,
     InboxPolicy,
     LifecycleError,
     MemoryBus,
     MemoryFabric,
     Node,
     Overflow,
+    ZenohConfig,
+    ZenohFabric,
     run_nodes,
 )
+from rap_sdk.fabric import free_port
 from rap_sdk.peers import PeerWatch
 from rap_sdk.testing import Harness
 
 pytestmark = pytest.mark.anyio
+
+
+class Battery(Message, frozen=True):
+    TYPE = "app.Battery/1"
+
+    level: float
 
 
 async def test_inbox_drops_are_counted_and_logged(caplog: pytest.LogCaptureFixture) -> None:
@@ -65,10 +75,15 @@ async def test_a_second_node_with_the_same_name_refuses_to_start() -> None:
 @pytest.mark.zenoh
 async def test_a_second_node_with_the_same_name_refuses_to_start_over_zenoh() -> None:
     first, second = Node("monitor"), Node("monitor")
-    async with Harness(system="t", fabric="zenoh", isolate=True) as h:
-        await h.start(first)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    async with (
+        ZenohFabric(ZenohConfig(listen=[endpoint])) as a,
+        run_nodes([first], fabric=a, system="t"),
+        ZenohFabric(ZenohConfig(connect=[endpoint])) as b,  # another process, linked
+    ):
         with pytest.raises(LifecycleError, match="already running"):
-            await h.start(second)
+            async with run_nodes([second], fabric=b, system="t"):
+                pass
 
 
 async def test_nodes_that_go_and_come_back_are_logged(caplog: pytest.LogCaptureFixture) -> None:
@@ -119,3 +134,33 @@ async def test_a_process_alone_or_without_knowledge_is_warned(
         (said,) = watch.stats.warnings
         assert warning in said
         assert "'lonely'" in said
+
+
+async def test_a_sample_over_the_routes_size_limit_is_rejected_before_decoding() -> None:
+    node = Node("n")
+    got: list[int] = []
+
+    @node.on_event("e", type=Battery, max_bytes=1000)
+    async def e(ctx: Context) -> None:
+        got.append(1)
+
+    async with Harness(system="t") as h:
+        await h.start(node)
+        payload, _ = h.sealer.seal(keys.event("t", "e"), Battery.TYPE, b"\xc4\xff" + b"x" * 255)
+        await h.emit("e", Battery(level=0.5))
+        await h.publish_raw(keys.event("t", "e"), payload + b"\x00" * 2000)
+        await h.wait_for(lambda r: len(h.rejections("n")) == 1)
+        assert "over the route's limit of 1000" in h.rejections("n")[0].reason
+        assert got == [1]
+
+
+def test_a_node_handles_a_key_once() -> None:
+    node = Node("n")
+
+    @node.on_event("e")
+    async def first(ctx: Context) -> None: ...
+
+    with pytest.raises(HandlerError, match="second handler of that key"):
+
+        @node.on_event("e")
+        async def second(ctx: Context) -> None: ...

@@ -9,8 +9,10 @@ from typing import Any
 import anyio
 import msgspec
 import pytest
+from knowledge.app import open_service
 from knowledge.config import KnowledgeConfig
 from rap_schemas import KbReply, LidarMask, SpinCommand, SpinPlan, keys
+from rap_sdk import LifecycleError
 from rap_sdk.knowledge import KnowledgeError, KnowledgeTypeError
 
 from services.knowledge.tests.deployment import deployment
@@ -197,3 +199,22 @@ async def test_garbage_on_the_write_stream_is_rejected_and_counted(kind: str) ->
         assert d.service.stats.stream_rejected == 2
         hist = await w.history("k")
         assert [h.value for h in hist] == ["fine"]
+
+
+async def test_a_second_service_for_the_same_system_refuses_to_start() -> None:
+    """Two services of one system answered every query twice, and clients took whichever
+    answer came first."""
+    async with deployment("memory") as d:
+        assert d.service is not None
+        with pytest.raises(LifecycleError, match="'knowledge' is already running"):
+            async with open_service(KnowledgeConfig(system="t"), fabric=d.service.fabric):
+                pass
+
+
+async def test_a_value_over_the_limit_fails_at_the_writer() -> None:
+    async with deployment("memory") as d:
+        w = await d.client("w", max_value_bytes=1000)
+        with pytest.raises(KnowledgeError, match="over the limit of 1000") as exc:
+            await w.write("big", "x" * 2000)  # not durable: it used to stay in w's replica
+        assert exc.value.code == "too-large"
+        assert await w.read("big", default=None) is None

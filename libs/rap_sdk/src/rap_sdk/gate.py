@@ -38,8 +38,11 @@ Node refuses, when it is declared, any handler that would take proposals or verd
 other than through :meth:`ApprovalGate.on_approved`.
 
 One legitimate event judges one plan type; a system with two kinds of plan proposes
-them on two events (``propose(ctx, plan, event=...)``, ``@legitimate(node, event=...)``)
-with a gate (and a ``verdict`` event) each.
+them on events of their own: ``propose(ctx, dock, event="new-dock-plan")``,
+``@legitimate(node, event="new-dock-plan", verdict="dock-verdict",
+rejected="dock-rejected")`` and a second gate with ``on_approved(node,
+event="dock-verdict", rejected="dock-rejected")``. A node handles each key once, so two
+gates on one execute node need their own verdict events.
 
 Trust-checker verdicts can veto (DESIGN §5): a :class:`TrustGuard` names guard streams,
 Bool outputs of trust specs published on ``rap/<system>/trust/<stream>``::
@@ -171,14 +174,20 @@ def legitimate(
     *,
     plan: type[Message] | None = None,
     event: str = NEW_PLAN,
+    verdict: str = VERDICT,
+    rejected: str = PLAN_REJECTED,
     policy: InboxPolicy | None = None,
 ) -> Callable[[C], C]:
     """Make ``fn(ctx, proposal) -> reason | None`` the node's legitimation of plans of
-    type ``plan`` (default: from the annotation ``PlanProposal[ThePlan]``).
+    type ``plan`` (default: from the annotation ``PlanProposal[ThePlan]``), proposed on
+    ``event`` and answered on ``verdict`` (and ``rejected`` when rejected): a second
+    plan type uses events of its own.
 
     None approves; a string rejects with that reason; an exception rejects too (with
     the exception as the reason): a check that fails never approves. A proposal of
     another plan type is rejected without calling ``fn``."""
+
+    verdict_event = verdict
 
     def register(fn: C) -> C:
         plans = _Plans(_plan_type(fn, plan, f"node {node.name!r}, legitimate"))
@@ -193,7 +202,7 @@ def legitimate(
                     log.exception("node %s: legitimation of a plan failed", ctx.node.name)
                     reason = f"legitimation failed: {type(exc).__name__}: {exc}"
             approved = reason is None
-            verdict = Verdict(
+            answer = Verdict(
                 plan_uid=proposal.plan_uid,
                 approved=approved,
                 legitimator=ctx.node.name,
@@ -201,9 +210,9 @@ def legitimate(
                 reason=reason or "",
                 proposal=typed if approved else None,
             )
-            await ctx.emit(VERDICT, verdict)
+            await ctx.emit(verdict_event, answer)
             if not approved:
-                await ctx.emit(PLAN_REJECTED, verdict)
+                await ctx.emit(rejected, answer)
 
         decide.__qualname__ = getattr(fn, "__qualname__", decide.__qualname__)
         node._route("event", event, policy or EVENT_POLICY, PlanProposal[msgspec.Raw])(decide)
@@ -477,6 +486,7 @@ class ApprovalGate:
         *,
         plan: type[Message] | None = None,
         event: str = VERDICT,
+        rejected: str = PLAN_REJECTED,
         policy: InboxPolicy | None = None,
     ) -> Callable[[A], A]:
         """Make ``fn(ctx, proposal)`` the node's execution of approved plans of type
@@ -494,7 +504,7 @@ class ApprovalGate:
                     typed, why = plans.typed(verdict.proposal)
                     if typed is None:
                         self.stats.malformed += 1
-                        await self._refuse(ctx, verdict, why)
+                        await self._refuse(ctx, verdict, why, rejected)
                         return
                 reason = self.check(verdict, ctx.envelope.source, ctx.clock.time_ns())
                 if reason is None:
@@ -506,7 +516,7 @@ class ApprovalGate:
                 if verdict.plan_uid in self._executed:
                     log.warning("node %s refused a plan: %s", ctx.node.name, reason)
                     return  # that plan ran: nothing to replan, only a replay to refuse
-                await self._refuse(ctx, verdict, reason)
+                await self._refuse(ctx, verdict, reason, rejected)
 
             gated.__qualname__ = getattr(fn, "__qualname__", gated.__qualname__)
             node._route("event", event, policy or EVENT_POLICY, Verdict[msgspec.Raw], gated=True)(
@@ -516,10 +526,12 @@ class ApprovalGate:
 
         return register
 
-    async def _refuse(self, ctx: Context, verdict: Verdict[Any], reason: str) -> None:
+    async def _refuse(
+        self, ctx: Context, verdict: Verdict[Any], reason: str, rejected: str
+    ) -> None:
         log.warning("node %s refused a plan: %s", ctx.node.name, reason)
         await ctx.emit(
-            PLAN_REJECTED,
+            rejected,
             Verdict(
                 plan_uid=verdict.plan_uid,
                 approved=False,

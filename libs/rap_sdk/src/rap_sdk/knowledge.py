@@ -313,10 +313,17 @@ class KnowledgeClient:
 
         Without ``durable`` the write goes out on the write stream and returns at once.
         ``durable=True`` waits for the service's acknowledgement; ``expect`` (0: the key
-        must not exist) makes it a compare-and-set, always through the service."""
-        return await self._submit(
-            self._record(key, msgspec.Raw(_encode(value)), False), durable, expect
-        )
+        must not exist) makes it a compare-and-set, always through the service. A value
+        over ``max_value_bytes`` raises ``KnowledgeError`` (``too-large``): the service
+        and every replica would refuse it."""
+        encoded = _encode(value)
+        if len(encoded) > self.max_value_bytes:
+            raise KnowledgeError(
+                f"value for {key!r} is {len(encoded)} bytes, over the limit of "
+                f"{self.max_value_bytes}; store large artefacts in the model store",
+                "too-large",
+            )
+        return await self._submit(self._record(key, msgspec.Raw(encoded), False), durable, expect)
 
     async def delete(self, key: str, *, durable: bool = False, expect: int | None = None) -> int:
         return await self._submit(self._record(key, _NIL, True), durable, expect)

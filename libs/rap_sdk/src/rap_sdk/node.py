@@ -37,6 +37,7 @@ from rap_schemas import (
     Verdict,
     keys,
 )
+from rap_schemas.limits import MAX_SAMPLE_BYTES
 
 from .envelope import TypedEnvelope, typed_decoder
 from .errors import ConfigError, HandlerError
@@ -77,6 +78,8 @@ class Route:
     policy: InboxPolicy
     check: Callable[[Any], str | None] | None = None
     """A further check of a decoded body (None: accept); a reason rejects the sample."""
+    max_bytes: int = MAX_SAMPLE_BYTES
+    """Samples larger than this are rejected before they are decoded."""
 
     @property
     def handler_name(self) -> str:
@@ -164,6 +167,7 @@ class Node:
         *,
         check: Callable[[Any], str | None] | None = None,
         gated: bool = False,
+        max_bytes: int | None = None,
     ) -> Callable[[F], F]:
         """Register a handler. ``declared``: the message type given by the decorator (may
         be a parametrized generic such as ``PlanProposal[SpinPlan]``); the handler's
@@ -194,8 +198,26 @@ class Node:
                 )
             if not gated:
                 self._refuse_ungated_plans(kind, name, cls, fn, where)
+            twin = next((r for r in self.routes if (r.kind, r.name) == (kind, name)), None)
+            if twin is not None:
+                raise HandlerError(
+                    f"{where}: {fn.__qualname__} would be a second handler of that key, next "
+                    f"to {twin.handler_name}; a node handles a key once: do both in one "
+                    "handler, or use another node (two gates on one node: give each its "
+                    "own verdict event)"
+                )
             self.routes.append(
-                Route(kind, name, fn, cls, takes, typed_decoder(wire), policy, check)
+                Route(
+                    kind,
+                    name,
+                    fn,
+                    cls,
+                    takes,
+                    typed_decoder(wire),
+                    policy,
+                    check,
+                    MAX_SAMPLE_BYTES if max_bytes is None else max_bytes,
+                )
             )
             return fn
 
@@ -217,18 +239,30 @@ class Node:
             )
 
     def on_data(
-        self, topic: str, *, type: Any = None, policy: InboxPolicy | None = None
+        self,
+        topic: str,
+        *,
+        type: Any = None,
+        policy: InboxPolicy | None = None,
+        max_bytes: int | None = None,
     ) -> Callable[[F], F]:
         """Handle samples on ``rap/<system>/data/<topic>``. ``type``: the message type
-        of the topic when the handler does not take the message."""
-        return self._route("data", topic, policy or DATA_POLICY, type)
+        of the topic when the handler does not take the message. ``max_bytes``: larger
+        samples are rejected (default ``rap_schemas.limits.MAX_SAMPLE_BYTES``, 4 MiB)."""
+        return self._route("data", topic, policy or DATA_POLICY, type, max_bytes=max_bytes)
 
     def on_event(
-        self, name: str, *, type: Any = None, policy: InboxPolicy | None = None
+        self,
+        name: str,
+        *,
+        type: Any = None,
+        policy: InboxPolicy | None = None,
+        max_bytes: int | None = None,
     ) -> Callable[[F], F]:
         """Handle events on ``rap/<system>/event/<name>``. ``type``: the event's message
-        type when the handler does not take the message (default ``rap.Empty/1``)."""
-        return self._route("event", name, policy or EVENT_POLICY, type)
+        type when the handler does not take the message (default ``rap.Empty/1``);
+        ``max_bytes`` as for :meth:`on_data`."""
+        return self._route("event", name, policy or EVENT_POLICY, type, max_bytes=max_bytes)
 
     def on_trust(self, stream: str, *, policy: InboxPolicy | None = None) -> Callable[[F], F]:
         """Handle a trust checker's output ``stream`` (``rap/<system>/trust/<stream>``,

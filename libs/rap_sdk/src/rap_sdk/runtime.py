@@ -39,7 +39,16 @@ from .knowledge import _MISSING, KnowledgeClient
 from .node import Node, Route
 from .rejections import Rejections, Throttle
 
-__all__ = ["Context", "NodeGroup", "NodeRuntime", "NodeStats", "await_alive", "run_nodes"]
+__all__ = [
+    "Context",
+    "NodeGroup",
+    "NodeRuntime",
+    "NodeStats",
+    "await_alive",
+    "refuse_running",
+    "run_nodes",
+    "serve",
+]
 
 log = logging.getLogger(__name__)
 
@@ -232,8 +241,12 @@ class NodeRuntime:
         system: str,
         clock: Clock | None = None,
         trace: bool = True,
+        check_name: bool = True,
     ) -> None:
+        """``check_name``: refuse to run when a node of this name is alive already
+        (:func:`run_nodes` checks the whole group once instead)."""
         keys.system_pattern(system)  # validates the system name
+        self._check_name = check_name
         self.node = node
         self.fabric = fabric
         self.system = system
@@ -380,6 +393,11 @@ class NodeRuntime:
         """Open, check, decode and dispatch one sample to ``route``'s handler."""
         self.stats.received += 1
         try:
+            if len(sample.payload) > route.max_bytes:
+                raise RejectedSample(
+                    f"sample of {len(sample.payload)} bytes is over the route's limit of "
+                    f"{route.max_bytes} (max_bytes= on the handler's decorator)"
+                )
             env = self.opener.open_typed(
                 sample.key, sample.payload, route.decode, route.msg_type.TYPE, sample.prepared
             )
@@ -449,11 +467,12 @@ class NodeRuntime:
             self._stopping.set()
         token = None
         alive_key = keys.alive(self.system, self.node.name)
-        try:
-            await refuse_running(fabric=self.fabric, system=self.system, names=[self.node.name])
-        except LifecycleError:
-            self._state = "stopped"
-            raise
+        if self._check_name:
+            try:
+                await refuse_running(fabric=self.fabric, system=self.system, names=[self.node.name])
+            except LifecycleError:
+                self._state = "stopped"
+                raise
         try:
             async with (
                 KnowledgeClient(
@@ -579,11 +598,13 @@ async def run_nodes(
     if len(set(names)) != len(names):
         raise LifecycleError(f"node names must be unique within a group: {names}")
     group = NodeGroup(
-        [NodeRuntime(n, fabric=fabric, system=system, clock=clock, trace=trace) for n in nodes]
+        [
+            NodeRuntime(n, fabric=fabric, system=system, clock=clock, trace=trace, check_name=False)
+            for n in nodes
+        ]
     )
-    await refuse_running(
-        fabric=fabric, system=system, names=names
-    )  # before the task group: a plain error
+    # before the task group, so that the error comes plain
+    await refuse_running(fabric=fabric, system=system, names=names)
     async with anyio.create_task_group() as tg:
         for rt in group.runtimes:
             await tg.start(rt.run)

@@ -17,7 +17,7 @@ from typing import Annotated, Literal
 import anyio
 import typer
 from rap_schemas.yamlconf import YamlError, load_yaml, read_text_file
-from rap_sdk import FabricError, ZenohConfig, ZenohFabric
+from rap_sdk import FabricError, LifecycleError, ZenohConfig, ZenohFabric
 from rap_sdk.entry import check_endpoints, check_system, fail, leaf, run_cli, setup_logging
 from rap_sdk.peers import PeerWatch
 
@@ -55,7 +55,10 @@ def main(
     ] = None,
     log_level: Annotated[str, typer.Option(help="Logging level.")] = "INFO",
 ) -> None:
-    """Serve knowledge for one system until SIGTERM or SIGINT."""
+    """Serve knowledge for one system until SIGTERM or SIGINT.
+
+    The memory backend (the default) loses every write, acknowledged or not, when the
+    service stops; sqlite and redis keep acknowledged writes."""
     setup_logging(log_level)
     if config_file is not None:
         config = load_config(config_file)
@@ -81,12 +84,14 @@ def main(
     use_uvloop = importlib.util.find_spec("uvloop") is not None
     try:
         anyio.run(_serve, config, zconf, backend_options={"use_uvloop": use_uvloop})
-    except (KnowledgeError, FabricError, BaseExceptionGroup) as exc:
+    except (KnowledgeError, FabricError, LifecycleError, BaseExceptionGroup) as exc:
         inner = leaf(exc)
         if isinstance(inner, KnowledgeError):  # the store cannot be opened
             raise fail(f"{inner} - check the {config.backend} backend's settings") from None
         if isinstance(inner, FabricError):  # a listen endpoint that is taken, say
-            raise fail(f"{inner} - check --listen and --connect") from None
+            raise fail(f"{inner} - check --listen and --connect", 1) from None
+        if isinstance(inner, LifecycleError):  # a service of this system is running
+            raise fail(f"{inner}", 1) from None
         raise
 
 

@@ -8,6 +8,8 @@ from contextlib import asynccontextmanager
 
 import anyio
 from rap_sdk import Fabric
+from rap_sdk.knowledge import SERVICE_NODE
+from rap_sdk.runtime import refuse_running
 
 from .adapters.memory import MemoryStore
 from .adapters.redis_store import RedisStore
@@ -44,6 +46,8 @@ async def open_service(
     """Run the service on ``fabric`` for the duration of the block (ready on entry). A
     store that cannot be opened raises its :class:`~knowledge.errors.KnowledgeError`
     before anything runs."""
+    # before anything runs, so that the error comes plain (not in a task group's group)
+    await refuse_running(fabric=fabric, system=config.system, names=[SERVICE_NODE])
     async with contextlib.AsyncExitStack() as stack:
         if store is None:
             store = await stack.enter_async_context(open_store(config))

@@ -43,6 +43,7 @@ from rap_sdk.errors import LifecycleError, RejectedSample
 from rap_sdk.inbox import Overflow
 from rap_sdk.knowledge import SERVICE_NODE
 from rap_sdk.rejections import Rejections, Throttle
+from rap_sdk.runtime import refuse_running
 
 from .config import KnowledgeConfig
 from .core import check_key, check_model, check_pattern, check_record, check_time, sha256
@@ -93,7 +94,10 @@ class KnowledgeService:
         self._model_locks: dict[str, anyio.Lock] = {}
 
     async def run(self, *, task_status: TaskStatus[None] = anyio.TASK_STATUS_IGNORED) -> None:
-        """Serve until cancelled; ready (subscribed and serving) when started."""
+        """Serve until cancelled; ready (subscribed and serving) when started. Raises
+        :class:`~rap_sdk.LifecycleError` when a knowledge service of this system is
+        alive already (clients would take whichever answer came first)."""
+        await refuse_running(fabric=self.fabric, system=self.config.system, names=[NODE])
         pattern = keys.pattern(self.config.system, keys.Kind.KB)
         stream = self.fabric.subscribe(
             pattern,

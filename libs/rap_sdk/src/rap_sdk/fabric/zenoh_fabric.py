@@ -551,9 +551,10 @@ class ZenohFabric:
     async def alive(self, key_expr: str, *, timeout: float = 2.0) -> list[str]:
         self._life.check_open()
         validate(key_expr)
-        if self.config.connect and not self._linked:
+        if self.config.connect and not self._linked and self._first_link is None:
             # a session that has just opened may not be linked yet: it would hear nobody
-            self._first_link = self._first_link or anyio.Event()
+            # (waited for once: an endpoint that does not answer costs this only once)
+            self._first_link = anyio.Event()
             with anyio.move_on_after(timeout):
                 await self._first_link.wait()
         done: asyncio.Future[None] = asyncio.get_running_loop().create_future()
