@@ -59,7 +59,49 @@ envelopes = st.builds(
     body=bodies,
 )
 
-payloads = st.binary(max_size=64) | msgpack_values.map(msgspec.msgpack.encode) | envelopes
+
+def deep(depth: int) -> bytes:
+    """msgpack nested ``depth`` arrays deep (about 1 KB killed a node at depth ~1000)."""
+    return b"\x91" * depth + b"\xc0"
+
+
+hostile_bodies = st.one_of(
+    st.integers(1, 5000).map(deep),
+    st.integers(1, 5000).map(lambda d: b"\x81\xa6ranges" + deep(d)),  # where a list goes
+    st.integers(1, 5000).map(lambda d: b"\x81\xa1z" + deep(d)),  # an unknown field
+    st.sampled_from([b"\xdd\xff\xff\xff\xff", b"\xdf\xff\xff\xff\xff", b"\xc6\xff\xff\xff\xff"]),
+    st.fixed_dictionaries(  # NaN, inf, -inf and wrong types where a scan has numbers
+        {
+            "stamp": st.integers(0, 2**62) | st.text(max_size=3),
+            "frame_id": st.text(max_size=8),
+            "angle_min": st.sampled_from([math.nan, math.inf, -math.inf, 0.0]),
+            "angle_increment": st.floats(),
+            "range_min": st.floats(),
+            "range_max": st.floats(),
+            "ranges": st.lists(st.sampled_from([math.nan, -math.inf, -1.0, 1.0, math.inf])),
+        }
+    ).map(msgspec.msgpack.encode),
+)
+hostile = st.builds(
+    lambda ts, seq, body: msgspec.msgpack.encode(
+        Envelope(
+            uid=b"u" * 16, ts=ts, source="x", seq=seq, type=LaserScan.TYPE, body=msgspec.Raw(body)
+        )
+    ),
+    ts=st.integers(0, 2**63 - 1),
+    seq=st.integers(0, 2**63 - 1),
+    body=hostile_bodies,
+)
+truncated = (envelopes | hostile).flatmap(
+    lambda p: st.integers(0, max(0, len(p) - 1)).map(lambda n: p[:n])
+)
+payloads = (
+    st.binary(max_size=64)
+    | msgpack_values.map(msgspec.msgpack.encode)
+    | envelopes
+    | hostile
+    | truncated
+)
 
 
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
