@@ -204,11 +204,17 @@ async def test_garbage_on_the_swap_queryable_is_refused_and_counted() -> None:
             assert not reply.ok
             assert b"swap request" in reply.payload
             assert b" - send a sealed rap.TrustSpecUpdate/1" in reply.payload
+        # specs that tripped the lexer (superscript digits are digits to str.isdigit, not
+        # to int()) and a tuple field past int()'s digit limit: refused, the checker lives
+        for text in ("out b: Int\nb = \u00b2\n", "\u00b9", "out b: Int\nb = t." + "9" * 5000):
+            odd, _ = sealer.seal_message(swap_key, TrustSpecUpdate(spec=text))
+            (reply,) = await peer.query(swap_key, odd, timeout=5.0)
+            assert not _open_status(reply.payload).body.ok
         good, _ = sealer.seal_message(swap_key, TrustSpecUpdate(spec="in ev_go\nout m\nm = 1\n"))
         (reply,) = await peer.query(swap_key, good, timeout=5.0)
         assert _open_status(reply.payload).body.ok
     assert transport.stats.rejections.total == 5
-    assert transport.stats.swap_queries == 6
+    assert transport.stats.swap_queries == 9
     assert service.session.stats.swaps == 1
     assert service.runner.outputs == ("m",)
 

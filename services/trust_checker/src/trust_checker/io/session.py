@@ -358,6 +358,11 @@ class Session:
             problems = [str(p) for p in exc.problems] or [str(exc)]
         except TrustError as exc:
             problems = [str(exc)]
+        except (ValueError, RecursionError, MemoryError) as exc:
+            # a spec from the network that trips the parser or the checker: a refused
+            # swap (with the traceback in the log), never the end of the checker
+            log.exception("spec update from %s failed inside the checker", req.origin or "?")
+            problems = [f"{req.path}: the checker failed on this spec: {type(exc).__name__}: {exc}"]
         else:
             self.runner = new
             if self.explainer is not None:

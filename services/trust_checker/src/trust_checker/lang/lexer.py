@@ -143,7 +143,7 @@ class _Lexer:
                 self.block_comment()
             elif ch == '"':
                 self.string()
-            elif ch.isdigit():
+            elif "0" <= ch <= "9":
                 self.number()
             elif _is_name_start(ch):
                 self.name()
@@ -198,7 +198,7 @@ class _Lexer:
     def number(self) -> None:
         line, col, start = self.line, self.col, self.i
         text = self.text
-        while self.i < len(text) and text[self.i].isdigit():
+        while self.i < len(text) and "0" <= text[self.i] <= "9":
             self.advance()
         after_dot = (
             bool(self.tokens)
@@ -206,13 +206,14 @@ class _Lexer:
             and (self.tokens[-1].line == line and self.tokens[-1].col == col - 1)
         )
         if after_dot:  # t.0 : a tuple field, never a float
-            self.emit("INT", text[start : self.i], line, col, int(text[start : self.i]))
+            digits = text[start : self.i]
+            self.emit("INT", digits, line, col, int(digits) if len(digits) <= 18 else -1)
             return
         is_float = False
-        if self.i + 1 < len(text) and text[self.i] == "." and text[self.i + 1].isdigit():
+        if self.i + 1 < len(text) and text[self.i] == "." and "0" <= text[self.i + 1] <= "9":
             is_float = True
             self.advance()
-            while self.i < len(text) and text[self.i].isdigit():
+            while self.i < len(text) and "0" <= text[self.i] <= "9":
                 self.advance()
         number = text[start : self.i]
         if self.i < len(text) and _is_name_start(text[self.i]):
