@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 
 import anyio
+import anyio.lowlevel
 import pytest
 from rap_schemas import Message, keys
 from rap_sdk import (
@@ -17,6 +18,7 @@ from rap_sdk import (
     MemoryFabric,
     Node,
     Overflow,
+    Sealer,
     ZenohConfig,
     ZenohFabric,
     run_nodes,
@@ -164,3 +166,50 @@ def test_a_node_handles_a_key_once() -> None:
 
         @node.on_event("e")
         async def second(ctx: Context) -> None: ...
+
+
+async def test_local_nodes_sending_in_a_cycle_do_not_deadlock() -> None:
+    """What make fuzz found in the one-process loop: the planner held its lock waiting for
+    room in legitimate's full inbox, legitimate waited for room in the planner's full
+    plan-rejected inbox, whose consumer waited for that lock. Local sends now give up on
+    a full inbox after a deadline (counted), so the cycle breaks. The steps below build
+    exactly that state."""
+    tiny = InboxPolicy(capacity=1, overflow=Overflow.FIFO)
+    planner, judge = Node("planner"), Node("judge")
+    hold = anyio.Event()
+    planned: list[int] = []
+    replanned: list[int] = []
+
+    @planner.on_event("anomaly", policy=tiny)
+    async def plan(ctx: Context) -> None:
+        await hold.wait()  # holds the planner's one-handler-at-a-time lock
+        await ctx.emit("new-plan")
+        planned.append(1)
+
+    @planner.on_event("rejected", policy=tiny)
+    async def replan(ctx: Context) -> None:
+        replanned.append(1)
+
+    @judge.on_event("new-plan", policy=tiny)
+    async def decide(ctx: Context) -> None:
+        await ctx.emit("rejected")
+
+    bus = MemoryBus()
+    sealer = Sealer("feeder")
+
+    async def feed(fabric: MemoryFabric, event: str) -> None:
+        key = keys.event("t", event)
+        payload, _ = sealer.seal_message(key, None)
+        await fabric.publish(key, payload)  # from another process: never waits
+        await anyio.wait_all_tasks_blocked()
+
+    async with MemoryFabric(bus=bus) as feeder, MemoryFabric(bus=bus) as nodes:
+        async with run_nodes([planner, judge], fabric=nodes, system="t") as group:
+            await feed(feeder, "anomaly")  # the planner takes it and holds its lock
+            for _ in range(4):  # the judge answers until its emit waits on a full inbox,
+                await feed(feeder, "new-plan")  # and one more new-plan fills its own
+            hold.set()  # the planner now emits into the judge's full inbox
+            with anyio.fail_after(10):  # before: never
+                while not planned or len(replanned) < 2:
+                    await anyio.wait_all_tasks_blocked()
+            assert group["planner"].stats.send_timeouts + group["judge"].stats.send_timeouts

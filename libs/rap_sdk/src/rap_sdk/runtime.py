@@ -33,7 +33,7 @@ from .envelope import (
     SystemClock,
     TypedEnvelope,
 )
-from .errors import LifecycleError, RapError, RejectedSample
+from .errors import BackpressureTimeout, LifecycleError, RapError, RejectedSample
 from .fabric import Fabric, Sample, Subscription
 from .knowledge import _MISSING, KnowledgeClient
 from .node import Node, Route
@@ -54,6 +54,11 @@ log = logging.getLogger(__name__)
 
 RECORD_TIMEOUT = 1.0
 """Seconds a trace or rejection record may wait for room in a local inbox."""
+SEND_TIMEOUT = 1.0
+"""Seconds a handler's emit or publish may wait for room in a local node's full FIFO
+inbox before that node is skipped (counted and logged): local nodes that send to each
+other in a cycle (plan -> legitimate -> plan-rejected -> plan) would otherwise wait for
+each other for ever once their inboxes are full."""
 
 
 @dataclass(slots=True)
@@ -65,6 +70,9 @@ class NodeStats:
     sent: int = 0
     dropped: int = 0
     """Samples the node's inboxes dropped because they were full (logged, rate-limited)."""
+    send_timeouts: int = 0
+    """Sends of this node that a local node's inbox could not take within
+    ``SEND_TIMEOUT`` (that node did not get them; logged, rate-limited)."""
     records_lost: int = 0
     """Trace or rejection records that could not be published."""
 
@@ -300,9 +308,23 @@ class NodeRuntime:
         cause: bytes | None = None,
         ctx: dict[str, int] | None = None,
     ) -> OutgoingEnvelope:
-        """Seal and publish ``message`` on ``key`` (a full key from rap_schemas.keys)."""
+        """Seal and publish ``message`` on ``key`` (a full key from rap_schemas.keys). A
+        local node whose FIFO inbox stays full for ``SEND_TIMEOUT`` s does not get it
+        (counted in ``stats.send_timeouts``, logged); everyone else does."""
         payload, env = self.sealer.seal_message(key, message, cycle=cycle, cause=cause, ctx=ctx)
-        await self.fabric.publish(key, payload)
+        try:
+            await self.fabric.publish(key, payload, timeout=SEND_TIMEOUT)
+        except BackpressureTimeout:
+            self.stats.send_timeouts += 1
+            if self._drop_log.hit(f"send {key}"):
+                log.warning(
+                    "node %s: a local node's inbox on %s stayed full for %g s: it did not get "
+                    "this sample (%d such sends in all); that node is slower than its input",
+                    self.node.name,
+                    key,
+                    SEND_TIMEOUT,
+                    self.stats.send_timeouts,
+                )
         self.stats.sent += 1
         return env
 

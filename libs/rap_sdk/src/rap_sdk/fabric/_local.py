@@ -15,7 +15,7 @@ import anyio
 from anyio.abc import TaskGroup
 from rap_schemas.limits import DECODE_ERRORS
 
-from ..errors import LifecycleError, QueryError
+from ..errors import BackpressureTimeout, LifecycleError, QueryError
 from ..inbox import Inbox, InboxPolicy, InboxStats
 from ..keyexpr import intersects
 from ._types import LivelinessChange, Prepare, QueryHandler, QueryRequest, Reply, Sample
@@ -129,14 +129,23 @@ class Router:
     @staticmethod
     async def deliver(
         subs: tuple[LocalSubscription, ...], key: str, payload: bytes, timeout: float | None
-    ) -> None:
+    ) -> BackpressureTimeout | None:
         """Hand a locally published sample to this process's matching subscribers
         (``subs``, from :meth:`matching`; FIFO inboxes with ``block`` make the publisher
-        wait for room). Callers skip the call when ``subs`` is empty."""
+        wait for room, at most ``timeout`` s each). A subscriber whose inbox stays full
+        past the deadline does not get the sample (counted in its ``dropped``) and the
+        others still do; the timeout is returned for the caller to raise once the
+        sample has gone everywhere else. Callers skip the call when ``subs`` is empty."""
+        late: BackpressureTimeout | None = None
         for sub in subs:
             sample = sub.sample(key, payload, False)
             if not sub.inbox.put_nowait(sample):
-                await sub.inbox.put(sample, timeout=timeout)
+                try:
+                    await sub.inbox.put(sample, timeout=timeout)
+                except BackpressureTimeout as exc:
+                    sub.inbox.stats.dropped += 1
+                    late = exc
+        return late
 
     def close_all(self) -> None:
         for sub in list(self._subs):

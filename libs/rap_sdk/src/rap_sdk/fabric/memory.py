@@ -148,13 +148,14 @@ class MemoryFabric:
             if len(self._published) < 4096:
                 self._published.add(key)
         subs = self._router.matching(key) if local else ()
-        if subs:
-            await self._router.deliver(subs, key, payload, timeout)
+        late = await self._router.deliver(subs, key, payload, timeout) if subs else None
         for member in self.bus.members:
             if member is self:
                 continue
             for sub in member._router.matching(key):
                 sub.inbox.offer(sub.sample(key, payload, True))
+        if late is not None:
+            raise late
 
     def has_subscribers(self, key: str, *, remote_only: bool = False) -> bool:
         self._life.check_open()

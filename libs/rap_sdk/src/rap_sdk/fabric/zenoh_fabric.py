@@ -300,8 +300,7 @@ class ZenohFabric:
         self._life.check_open()
         cell = self._pubs.get(key) or self._declare_publisher(key)  # validates the key
         subs = self._router.matching(key) if local else ()
-        if subs:
-            await self._router.deliver(subs, key, payload, timeout)
+        late = await self._router.deliver(subs, key, payload, timeout) if subs else None
         # The matching flag flips on Zenoh's thread when a remote subscriber's
         # declaration reaches this session, i.e. when Zenoh's own routing would start
         # sending it samples: skipping the put before then loses nothing Zenoh delivers.
@@ -310,6 +309,8 @@ class ZenohFabric:
                 cell.pub.put(payload)
             except zenoh.ZError as exc:
                 raise FabricError(f"publish on {key!r} failed: {exc}") from None
+        if late is not None:
+            raise late
 
     def _declare_publisher(self, key: str) -> _Pub:
         validate(key)
