@@ -15,7 +15,7 @@ from knowledge.adapters.sqlite_store import SqliteStore
 from knowledge.app import open_service
 from knowledge.config import HistoryRule, KnowledgeConfig
 from knowledge.core import Retention
-from rap_schemas import KbPut, KbRecord, KbReply, keys
+from rap_schemas import Envelope, KbPut, KbRecord, KbReply, Rejection, keys
 from rap_schemas.knowledge import EPOCH_MS
 from rap_sdk import MemoryBus, MemoryFabric, Sealer
 from rap_sdk.knowledge import HybridClock, KnowledgeClient, KnowledgeError
@@ -230,3 +230,28 @@ async def test_a_request_sent_to_another_key_is_refused() -> None:
         assert "was sent to" in got.error
         with pytest.raises(KnowledgeError, match="has no value"):
             await w.read("a")
+
+
+async def test_a_value_nested_past_the_limit_is_not_stored_and_the_refusal_is_published() -> None:
+    """The service stored values nested hundreds of levels deep, which readers with a deeper stack
+    could not decode; now it refuses past 32 levels, and says so on its log key."""
+    async with deployment("memory") as d:
+        w = await d.client("w")
+        assert d.service is not None
+        log_sub = w.fabric.subscribe(keys.log("t", "knowledge"))
+        deep = record("k", w.clock.next(), None)
+        deep = msgspec.structs.replace(deep, value=msgspec.Raw(b"\x91" * 200 + b"\xc0"))
+        (reply,) = await w.fabric.query(
+            keys.kb("t", "k"), msgspec.msgpack.encode(KbPut(record=deep))
+        )
+        got = msgspec.msgpack.decode(reply.payload, type=KbReply)
+        assert (got.ok, got.code) == (False, "bad-request")
+        assert "more than 32 levels" in got.error
+        payload, _ = w.sealer.seal_message(keys.kb("t", "k"), deep)
+        await w.fabric.publish(keys.kb("t", "k"), payload)  # on the stream
+        with anyio.fail_after(5):
+            rec = msgspec.msgpack.decode((await log_sub.get()).payload, type=Envelope)
+        rejection = msgspec.msgpack.decode(rec.body, type=Rejection)
+        assert rejection.node == "knowledge"
+        assert "more than 32 levels" in rejection.reason
+        assert await w.read("k", default=None) is None

@@ -20,7 +20,7 @@ import hashlib
 import logging
 import time
 import zlib
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from types import TracebackType
 from typing import Any, Final, TypeVar, overload
 
@@ -41,6 +41,7 @@ from rap_schemas import (
     ModelMeta,
     ModelPin,
     ModelPut,
+    Rejection,
     keys,
 )
 from rap_schemas.knowledge import (
@@ -202,8 +203,11 @@ class KnowledgeClient:
         self.sealer = Sealer(writer)
         self.opener = Opener()
         self.max_value_bytes = max_value_bytes
-        self.rejections = Rejections(f"knowledge client {writer}", log)
+        self.rejections = Rejections(writer, log)
         """Write records refused by the replicas (bounds, bad envelopes, wrong keys)."""
+        self.on_rejection: Callable[[Rejection], Awaitable[None]] | None = None
+        """Called with each rejection record that is due (rate-limited): a node's
+        runtime publishes them on its log key."""
         self._replicas: dict[str, _Replica] = {}
         self._kb_keys: dict[str, str] = {}
         self._own: dict[str, KbRecord] = {}
@@ -508,7 +512,9 @@ class KnowledgeClient:
                 rec: KbRecord = env.body
                 self._check(rec, rep.key)
             except RejectedSample as exc:
-                self.rejections.reject(key, exc.reason, source=exc.source, type=exc.type)
+                await self._rejected(
+                    self.rejections.reject(key, exc.reason, source=exc.source, type=exc.type)
+                )
                 continue
             self.clock.observe(rec.version)
             rep.offer(rec)
@@ -526,6 +532,10 @@ class KnowledgeClient:
             )
         except RecordError as exc:
             raise RejectedSample(str(exc)) from None
+
+    async def _rejected(self, rec: Rejection | None) -> None:
+        if rec is not None and self.on_rejection is not None:
+            await self.on_rejection(rec)
 
     async def _refresh_quietly(self, rep: _Replica) -> None:
         """A background catch-up: a failure is logged, the replica keeps following."""
@@ -545,7 +555,9 @@ class KnowledgeClient:
             try:
                 self._check(reply.record, rep.key)
             except RejectedSample as exc:
-                self.rejections.reject(keys.kb(self.system, rep.key), f"service reply: {exc}")
+                await self._rejected(
+                    self.rejections.reject(keys.kb(self.system, rep.key), f"service reply: {exc}")
+                )
                 return
             self.clock.observe(reply.record.version)
             rep.offer(reply.record)

@@ -22,7 +22,7 @@ from typing import Any
 
 import anyio
 from anyio.abc import TaskStatus
-from rap_schemas import KnowledgeAccess, Message, StageTrace, keys
+from rap_schemas import KnowledgeAccess, Message, Rejection, StageTrace, keys
 
 from .envelope import (
     Clock,
@@ -406,6 +406,10 @@ class NodeRuntime:
             payload, _ = self.sealer.seal_message(self._log_key, rec)
             await self._publish_record(self._log_key, payload)
 
+    async def _publish_rejection(self, rec: Rejection) -> None:
+        payload, _ = self.sealer.seal_message(self._log_key, rec)
+        await self._publish_record(self._log_key, payload)
+
     async def _flush_rejections(self) -> None:
         for rec in self.rejections.flush():
             payload, _ = self.sealer.seal_message(self._log_key, rec)
@@ -503,6 +507,7 @@ class NodeRuntime:
                 anyio.create_task_group() as tg,
             ):
                 self._knowledge = kb
+                kb.on_rejection = self._publish_rejection
                 for route in self.node.routes:
                     sub = self.fabric.subscribe(
                         self.route_key(route), route.policy, prepare=route.decode

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from rap_schemas import MODELS_PREFIX, KbRecord, keys
 from rap_schemas.knowledge import RecordError
 from rap_schemas.knowledge import check_record as bounds
+from rap_schemas.limits import MAX_DEPTH, DecodeRejected, SafeDecoder
 from rap_sdk.keyexpr import KeyExprError, intersects, validate
 
 from .config import HistoryRule
@@ -22,6 +23,7 @@ __all__ = [
     "check_pattern",
     "check_record",
     "check_time",
+    "check_value",
     "sha256",
 ]
 
@@ -95,7 +97,20 @@ def check_record(rec: KbRecord, max_value_bytes: int) -> KbRecord:
         bounds(rec, now_ms=time.time_ns() // 1_000_000, max_value_bytes=max_value_bytes)
     except RecordError as exc:
         raise (TooLarge if exc.code == "too-large" else BadRequest)(str(exc)) from None
+    check_value(rec)
     return rec
+
+
+_plain = SafeDecoder[object](max_depth=MAX_DEPTH, max_bytes=1 << 62, what="value")
+
+
+def check_value(rec: KbRecord) -> None:
+    """A stored value must decode, nested at most ``MAX_DEPTH`` levels: every reader can
+    then read it, whatever its stack (the decoder's own nesting guard depends on it)."""
+    try:
+        _plain.decode(rec.value)
+    except DecodeRejected as exc:
+        raise BadRequest(f"record for {rec.key!r}: {exc.reason}") from None
 
 
 def sha256(data: bytes) -> str:

@@ -34,6 +34,7 @@ from rap_schemas import (
     ModelMeta,
     ModelPin,
     ModelPut,
+    Rejection,
     keys,
 )
 from rap_schemas.limits import DecodeRejected, SafeDecoder
@@ -91,6 +92,7 @@ class KnowledgeService:
             KbRequest, max_bytes=config.max_model_bytes + (1 << 20), what="knowledge request"
         ).decode
         self._prefix = keys.kb(config.system, "x")[:-1]
+        self._log_key = keys.log(config.system, NODE)
         self._model_locks: dict[str, anyio.Lock] = {}
 
     async def run(self, *, task_status: TaskStatus[None] = anyio.TASK_STATUS_IGNORED) -> None:
@@ -135,14 +137,26 @@ class KnowledgeService:
                 self.stats.stream_applied += 1
             except RejectedSample as exc:
                 self.stats.stream_rejected += 1
-                self.rejections.reject(sample.key, exc.reason, source=exc.source, type=exc.type)
+                await self._rejected(
+                    self.rejections.reject(sample.key, exc.reason, source=exc.source, type=exc.type)
+                )
             except (BadRequest, TooLarge) as exc:
                 self.stats.stream_rejected += 1
-                self.rejections.reject(sample.key, str(exc))
+                await self._rejected(self.rejections.reject(sample.key, str(exc)))
             except Exception as exc:  # the store failed: counted, logged, the stream goes on
                 self.stats.stream_failed += 1
                 if self._throttle.hit("store"):
                     log.error("write stream: could not store a record on %s: %s", sample.key, exc)
+
+    async def _rejected(self, rec: Rejection | None) -> None:
+        """Publish a due rejection record on ``rap/<system>/log/knowledge``."""
+        if rec is None:
+            return
+        payload, _ = self.sealer.seal_message(self._log_key, rec)
+        try:
+            await self.fabric.publish(self._log_key, payload, timeout=1.0)
+        except RapError as exc:
+            log.debug("a rejection record could not be published: %s", exc)
 
     # -- queries ---------------------------------------------------------------------------
 
@@ -153,7 +167,7 @@ class KnowledgeService:
                 self._request(query.payload), query.key, query.arrived or time.monotonic()
             )
         except DecodeRejected as exc:
-            self.rejections.reject(query.key, exc.reason)
+            await self._rejected(self.rejections.reject(query.key, exc.reason))
             reply = self._error(BadRequest(exc.reason), quiet=True)
         except (KnowledgeError, RapError) as exc:
             reply = self._error(exc)
