@@ -51,3 +51,21 @@ async def test_latest_drops_the_oldest_and_counts() -> None:
         assert inbox.offer(i)
     assert [inbox.get_nowait(), inbox.get_nowait()] == [3, 4]
     assert (inbox.stats.accepted, inbox.stats.dropped, inbox.stats.high_water) == (5, 3, 2)
+
+
+def test_a_byte_budget_bounds_what_is_queued() -> None:
+    fifo = Inbox(InboxPolicy(capacity=100, max_bytes=10), size=len)
+    assert fifo.offer(b"12345")
+    assert fifo.offer(b"12345")
+    assert not fifo.offer(b"1")  # 11 bytes would be over 10: dropped
+    assert fifo.stats.dropped == 1
+    assert fifo.get_nowait() == b"12345"
+    assert fifo.offer(b"1")  # room again
+    latest = Inbox(InboxPolicy(capacity=100, overflow=Overflow.LATEST, max_bytes=10), size=len)
+    for chunk in (b"aaaa", b"bbbb", b"cccc"):
+        latest.offer(chunk)
+    assert [latest.get_nowait(), latest.get_nowait()] == [b"bbbb", b"cccc"]  # newest kept
+    assert latest.stats.dropped == 1
+    big = Inbox(InboxPolicy(capacity=100, max_bytes=10), size=len)
+    assert big.offer(b"x" * 50)  # alone, an item larger than the budget still passes
+    assert not big.offer(b"y")

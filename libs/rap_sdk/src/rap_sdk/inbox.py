@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import enum
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Generic, TypeVar
 
@@ -35,10 +36,16 @@ class InboxPolicy(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     overflow: Overflow = Overflow.FIFO
     block: bool = True
     """FIFO only: local publishers wait for room instead of dropping."""
+    max_bytes: int | None = None
+    """Bytes the queued samples may hold together (None: bounded by count only); past it
+    the inbox is full, as past ``capacity``. A count alone does not bound memory when
+    samples may be large."""
 
     def __post_init__(self) -> None:
         if self.capacity < 1:
             raise ValueError(f"inbox capacity must be >= 1, got {self.capacity}")
+        if self.max_bytes is not None and self.max_bytes < 1:
+            raise ValueError(f"inbox max_bytes must be >= 1 or None, got {self.max_bytes}")
         # a plain string (InboxPolicy(overflow="fifo")) becomes the enum, or is refused
         try:
             msgspec.structs.force_setattr(self, "overflow", Overflow(self.overflow))
@@ -59,15 +66,31 @@ class InboxStats:
 class Inbox(Generic[T]):
     """A single-consumer bounded queue living on one event loop."""
 
-    __slots__ = ("_closed", "_getter", "_items", "_putters", "policy", "stats")
+    __slots__ = ("_bytes", "_closed", "_getter", "_items", "_putters", "_size", "policy", "stats")
 
-    def __init__(self, policy: InboxPolicy) -> None:
+    def __init__(self, policy: InboxPolicy, size: Callable[[T], int] | None = None) -> None:
+        """``size(item)``: an item's bytes, for ``policy.max_bytes``."""
         self.policy = policy
         self.stats = InboxStats()
         self._items: deque[T] = deque()
         self._getter: asyncio.Future[None] | None = None
         self._putters: deque[asyncio.Future[None]] = deque()
         self._closed = False
+        self._size = size if policy.max_bytes is not None else None
+        self._bytes = 0
+
+    def _full(self, n: int) -> bool:
+        """No room for one more item of ``n`` bytes."""
+        if len(self._items) >= self.policy.capacity:
+            return True
+        limit = self.policy.max_bytes
+        return limit is not None and self._bytes + n > limit and bool(self._items)
+
+    def _pop(self) -> T:
+        item = self._items.popleft()
+        if self._size is not None:
+            self._bytes -= self._size(item)
+        return item
 
     def __len__(self) -> int:
         return len(self._items)
@@ -80,26 +103,26 @@ class Inbox(Generic[T]):
         """Add without waiting. Returns False when the item was dropped."""
         if self._closed:
             return False
-        items = self._items
-        if len(items) >= self.policy.capacity:
-            self.stats.dropped += 1
+        n = self._size(item) if self._size is not None else 0
+        if self._full(n):
             if self.policy.overflow is Overflow.FIFO:
+                self.stats.dropped += 1
                 return False
-            items.popleft()
-        items.append(item)
-        self._accepted(len(items))
+            while self._full(n):  # latest: the oldest make room for the newest
+                self._pop()
+                self.stats.dropped += 1
+        self._items.append(item)
+        self._bytes += n
+        self._accepted(len(self._items))
         return True
 
     def put_nowait(self, item: T) -> bool:
         """Add without waiting when the policy allows it now. False only when the item
         must wait for room (FIFO with ``block``, full): then ``await put(item)``."""
         policy = self.policy
-        if (
-            policy.block
-            and policy.overflow is Overflow.FIFO
-            and (len(self._items) >= policy.capacity)
-        ):
-            return False
+        if policy.block and policy.overflow is Overflow.FIFO:
+            if self._full(self._size(item) if self._size is not None else 0):
+                return False
         self.offer(item)
         return True
 
@@ -113,7 +136,8 @@ class Inbox(Generic[T]):
             return self.offer(item)
         loop = asyncio.get_running_loop()
         deadline = None if timeout is None else loop.time() + timeout
-        while len(self._items) >= policy.capacity and not self._closed:
+        n = self._size(item) if self._size is not None else 0
+        while self._full(n) and not self._closed:
             fut = loop.create_future()
             self._putters.append(fut)
             left = None if deadline is None else max(0.0, deadline - loop.time())
@@ -135,6 +159,7 @@ class Inbox(Generic[T]):
         if self._closed:
             return False
         self._items.append(item)
+        self._bytes += n
         self._accepted(len(self._items))
         return True
 
@@ -150,7 +175,7 @@ class Inbox(Generic[T]):
     def get_nowait(self) -> T | None:
         if not self._items:
             return None
-        item = self._items.popleft()
+        item = self._pop()
         self._wake_putter()
         return item
 
@@ -166,7 +191,7 @@ class Inbox(Generic[T]):
                 await self._getter
             finally:
                 self._getter = None
-        item = self._items.popleft()
+        item = self._pop()
         self._wake_putter()
         return item
 

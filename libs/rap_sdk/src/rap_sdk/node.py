@@ -49,8 +49,8 @@ F = TypeVar("F", bound=Callable[..., Awaitable[None]])
 
 DATA_POLICY = InboxPolicy(capacity=8, overflow=Overflow.LATEST)
 """Default for data topics: keep the newest samples."""
-EVENT_POLICY = InboxPolicy(capacity=256, overflow=Overflow.FIFO, block=True)
-"""Default for events: in order, local senders wait for room."""
+EVENT_POLICY = InboxPolicy(capacity=256, overflow=Overflow.FIFO, block=True, max_bytes=64 << 20)
+"""Default for events: in order, local senders wait for room; at most 64 MiB queued."""
 TRUST_POLICY = InboxPolicy(capacity=64, overflow=Overflow.LATEST)
 """Default for trust-checker outputs: the newest verdicts matter (a checker never waits
 for a slow node)."""

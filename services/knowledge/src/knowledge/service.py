@@ -103,7 +103,7 @@ class KnowledgeService:
         pattern = keys.pattern(self.config.system, keys.Kind.KB)
         stream = self.fabric.subscribe(
             pattern,
-            InboxPolicy(capacity=65536, overflow=Overflow.FIFO, block=True),
+            InboxPolicy(capacity=65536, overflow=Overflow.FIFO, block=True, max_bytes=256 << 20),
             prepare=_STREAM,
         )
         queryable = self.fabric.serve(pattern, self._answer)

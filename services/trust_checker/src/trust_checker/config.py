@@ -84,6 +84,10 @@ class FabricConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     inbox: Annotated[int, msgspec.Meta(ge=1)] = 1 << 16
     """Input samples that may wait for the checker; past this many, new ones are dropped,
     counted (``FabricTransportStats.lost``) and logged as an error."""
+    inbox_bytes: Annotated[int, msgspec.Meta(ge=1)] = 64 << 20
+    """Bytes those samples may hold together (a count alone does not bound memory: a
+    flood of large samples took a checker to 4 GiB); past it, new ones are dropped the
+    same way."""
 
 
 class ServiceConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):

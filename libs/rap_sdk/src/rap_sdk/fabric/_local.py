@@ -30,8 +30,13 @@ DEFAULT_POLICY = InboxPolicy()
 class InboxStream(Generic[T]):
     """An async iterator over an inbox; closing it runs ``on_close`` once."""
 
-    def __init__(self, policy: InboxPolicy, on_close: Callable[[InboxStream[T]], None]) -> None:
-        self.inbox: Inbox[T] = Inbox(policy)
+    def __init__(
+        self,
+        policy: InboxPolicy,
+        on_close: Callable[[InboxStream[T]], None],
+        size: Callable[[T], int] | None = None,
+    ) -> None:
+        self.inbox: Inbox[T] = Inbox(policy, size)
         self._on_close = on_close
 
     @property
@@ -77,7 +82,7 @@ class LocalSubscription(InboxStream[Sample]):
         on_close: Callable[[InboxStream[Sample]], None],
         prepare: Prepare | None = None,
     ) -> None:
-        super().__init__(policy, on_close)
+        super().__init__(policy, on_close, _payload_size)
         self.key_expr = key_expr
         self.remote_handle: object | None = None
         self.prepare = prepare
@@ -88,6 +93,10 @@ class LocalSubscription(InboxStream[Sample]):
         if self.prepare is not None:
             s.prepared = prepared(self.prepare, payload)
         return s
+
+
+def _payload_size(sample: Sample) -> int:
+    return len(sample.payload)
 
 
 def prepared(prepare: Prepare, payload: bytes) -> Any:

@@ -338,7 +338,12 @@ class FabricTransport:
         subs: list[Subscription] = []
         queryable = self.fabric.serve(self.swap_key, self._on_swap)
         try:
-            inbox = InboxPolicy(capacity=self.config.inbox, overflow=Overflow.FIFO, block=False)
+            inbox = InboxPolicy(
+                capacity=self.config.inbox,
+                overflow=Overflow.FIFO,
+                block=False,
+                max_bytes=self.config.inbox_bytes,
+            )
             subs = [self.fabric.subscribe(k, inbox) for k in self.key_exprs]
             async with anyio.create_task_group() as tg:
                 for sub in subs:
