@@ -189,3 +189,20 @@ async def test_nan_and_negative_readings_are_rejected_at_the_boundary() -> None:
         assert not h.of(keys.Kind.EVENT, "new-data")
         await h.publish("tb1/scan", good)
         await h.expect_data("tb1/spin_config")
+
+
+async def test_a_scan_stamped_in_the_future_does_not_hold_the_anomaly_for_good() -> None:
+    """make fuzz: a forged scan stamped far ahead raised an anomaly whose plan never came;
+    every real scan after it looked older than it, so the anomaly never timed out and the
+    loop never closed again."""
+    loop = build("tb1")
+    stage = loop.legitimate
+    others = [n for n in loop.nodes if n is not stage]
+    async with Harness(system="lo") as h:
+        await h.hold(open_service(KnowledgeConfig(system="lo"), fabric=h.fabric))
+        await h.start(*others)  # no legitimate: the forged scan's plan goes nowhere
+        await h.publish("tb1/scan", scan(-0.4, 0.8, stamp=2**62))
+        await h.expect_event("anomaly")
+        await h.start(stage)
+        await h.publish("tb1/scan", scan(-0.4, 0.8, stamp=10**9))
+        await h.expect_data("tb1/spin_config")

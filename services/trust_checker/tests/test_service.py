@@ -11,8 +11,10 @@ from rap_sdk import ConfigError, MemoryFabric
 from trust_checker.config import FabricConfig, ServiceConfig
 from trust_checker.console import ConsoleSink
 from trust_checker.engine import SpecRunner
-from trust_checker.io.specs import load_text
+from trust_checker.errors import SpecError
+from trust_checker.io.specs import MAX_SPEC_CHARS, load_text
 from trust_checker.io.ticks import Arrival, TickPolicy
+from trust_checker.operators import MAX_ENTRIES
 from trust_checker.service import open_service
 
 from services.trust_checker.tests.io_support import FakeRunner, FakeSpec, fake_loader
@@ -87,3 +89,24 @@ async def test_a_spec_whose_values_grow_without_bound_does_not_stop_the_checker(
     out = capsys.readouterr().out
     assert out.count("ok[") == 1500
     assert 1400 < s.session.stats.eval_errors < 1500
+
+
+async def test_a_map_that_grows_with_its_input_is_bounded() -> None:
+    """make fuzz fed a map of every knowledge key seen with made-up keys: the checker
+    copied an ever larger map at every tick and reached 13 GiB. Collections stop at
+    MAX_ENTRIES: a tick that would grow one past it fails, the checker goes on."""
+    spec = load_text(
+        "in key: Str\nout n: Int\nout seen: Map<Bool>\n"
+        "seen = Map.insert(default(seen[1], Map()), key, true)\nn = 1\n"
+    )
+    async with open_service(ServiceConfig(), spec) as s:
+        for i in range(MAX_ENTRIES + 50):
+            await s.session.submit(Arrival({"key": f"k{i}"}, 1_000 + i, "test"))
+        await s.session.wait_idle()
+        assert s.session.stats.eval_errors == 50
+        assert s.session.stats.ticks == MAX_ENTRIES
+
+
+def test_a_spec_text_over_the_limit_is_refused() -> None:
+    with pytest.raises(SpecError, match="over the limit of"):
+        load_text("out y: Int\ny = " + "1+" * (MAX_SPEC_CHARS // 2) + "1\n")

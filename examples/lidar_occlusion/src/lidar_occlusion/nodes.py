@@ -138,7 +138,8 @@ def build(
         planned_msg = await ctx.kb.read(PLANNED_MASK, LidarMask, default=None)
         handling = await ctx.kb.read(HANDLING, bool, default=False)
         since = raised_at[0]
-        waited = math.inf if since is None else (scan.stamp - since) / 1e9
+        # a scan older than the anomaly (a forged or replayed stamp raised it): lost too
+        waited = math.inf if since is None or scan.stamp < since else (scan.stamp - since) / 1e9
         lost = handling and waited > cfg.handling_timeout
         if lost:
             log.warning(

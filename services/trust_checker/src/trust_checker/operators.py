@@ -29,14 +29,31 @@ from trust_checker.values import (
 __all__ = [
     "BINARY",
     "CALLS",
+    "MAX_ENTRIES",
     "Fault",
     "Mismatch",
     "conformer",
     "equal",
     "field",
+    "grown",
     "logical_not",
     "negate",
 ]
+
+
+MAX_ENTRIES: Final = 10_000
+"""The most entries a List or Map may grow to. A spec whose collections grow with its
+input (a map of every knowledge key seen, say) would otherwise grow without bound on a
+flood of made-up keys, copying the whole collection at every tick: past this, the
+growing operation fails the tick (an evaluation error), the collection keeps its size."""
+
+
+def grown(fn: str, n: int) -> None:
+    if n > MAX_ENTRIES:
+        raise Fault(
+            f"{fn} would make a collection of {n} entries, over the limit of {MAX_ENTRIES}; "
+            "a spec's Lists and Maps must stay bounded: remove entries as they stop mattering"
+        )
 
 
 class Fault(Exception):
@@ -341,11 +358,15 @@ def list_get(lst: object, i: object) -> object:
 
 
 def list_concat(a: object, b: object) -> object:
-    return _list("List.concat", a) + _list("List.concat (second argument)", b)
+    left, right = _list("List.concat", a), _list("List.concat (second argument)", b)
+    grown("List.concat", len(left) + len(right))
+    return left + right
 
 
 def list_append(lst: object, x: object) -> object:
-    return (*_list("List.append", lst), x)
+    items = _list("List.append", lst)
+    grown("List.append", len(items) + 1)
+    return (*items, x)
 
 
 def list_head(lst: object) -> object:
@@ -368,6 +389,7 @@ def map_get(m: object, k: object) -> object:
 def map_insert(m: object, k: object, v: object) -> object:
     out = MapV(_map("Map.insert", m))
     out[_key("Map.insert", k)] = v
+    grown("Map.insert", len(out))
     return out
 
 

@@ -469,6 +469,8 @@ def _lift3(
         if insert and type(a) is MapV and type(b) is str and c is not NOVAL and c is not BOTTOM:
             out = MapV(a)
             out[b] = c
+            if len(out) > op.MAX_ENTRIES:
+                op.grown("Map.insert", len(out))
             return out
         if a is NOVAL or b is NOVAL or c is NOVAL:
             return NOVAL
