@@ -6,8 +6,9 @@ RUN := $(UV) run --frozen --no-sync
 PYTEST_ARGS ?=
 DEMO_ARGS ?=
 EVAL_ARGS ?=
+FUZZ_ARGS ?=
 
-.PHONY: help setup sync test lint format typecheck schemas bench bench-fabric bench-knowledge bench-sim bench-loop bench-trust demo eval clean
+.PHONY: help setup sync test lint format typecheck schemas bench bench-fabric bench-knowledge bench-sim bench-loop bench-trust fuzz demo eval clean
 
 help:
 	@echo "make demo       run the lidar-occlusion loop end to end (out/demo/summary.json, demo.rrd)"
@@ -17,6 +18,7 @@ help:
 	@echo "make typecheck  mypy --strict on schemas, libs and services"
 	@echo "make schemas    export JSON Schema of every wire message to schemas/json"
 	@echo "make bench      run the benchmarks; results in bench/results and docs/benchmarks.md"
+	@echo "make fuzz       fuzz every subscriber of a running loop (bench/results/fuzz.json, docs/reliability.md)"
 
 # Install uv from PyPI when it is missing, then sync the locked workspace.
 setup:
@@ -61,6 +63,11 @@ bench-trust: setup
 # The loop race against RPIO 0.4.3 (its own venv in bench/.rpio-venv; ~10 min)
 bench-loop: setup
 	$(RUN) python -m bench.loop
+
+# Mutated samples at every subscriber of a running lidar-occlusion loop, bounded in time
+# (FUZZ_ARGS="--seconds 300 --samples 100000 --seed 1"): bench/results/fuzz.json
+fuzz: setup
+	$(RUN) python -m bench.fuzz $(FUZZ_ARGS)
 
 # The lidar-occlusion loop end to end (sim_world, knowledge, the runner; loopback Zenoh).
 demo: setup

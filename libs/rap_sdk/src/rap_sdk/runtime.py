@@ -469,9 +469,19 @@ class NodeRuntime:
         except Exception as exc:  # a handler bug must not stop the node
             error = f"{type(exc).__name__}: {exc}"
             self.stats.failed += 1
-            log.exception(
-                "node %s: handler %s failed on %s", self.node.name, route.handler_name, ctx.key
-            )
+            # the traceback at once, then at most one a second per handler with a count:
+            # a poisoned input can make every call fail
+            count = self._drop_log.hit(f"failed {route.handler_name}")
+            if count:
+                log.exception(
+                    "node %s: handler %s failed on %s (%d failure(s) since the last report, "
+                    "%d in all)",
+                    self.node.name,
+                    route.handler_name,
+                    ctx.key,
+                    count,
+                    self.stats.failed,
+                )
         else:
             self.stats.handled += 1
         if traced:

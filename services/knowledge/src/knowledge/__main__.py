@@ -23,7 +23,7 @@ from rap_sdk.peers import PeerWatch
 
 from .app import open_service
 from .config import HistoryRule, KnowledgeConfig
-from .errors import KnowledgeError
+from .errors import ServiceError
 
 __all__ = ["MEMORY_WARNING", "cli", "load_config", "main"]
 
@@ -84,9 +84,9 @@ def main(
     use_uvloop = importlib.util.find_spec("uvloop") is not None
     try:
         anyio.run(_serve, config, zconf, backend_options={"use_uvloop": use_uvloop})
-    except (KnowledgeError, FabricError, LifecycleError, BaseExceptionGroup) as exc:
+    except (ServiceError, FabricError, LifecycleError, BaseExceptionGroup) as exc:
         inner = leaf(exc)
-        if isinstance(inner, KnowledgeError):  # the store cannot be opened
+        if isinstance(inner, ServiceError):  # the store cannot be opened
             raise fail(f"{inner} - check the {config.backend} backend's settings") from None
         if isinstance(inner, FabricError):  # a listen endpoint that is taken, say
             raise fail(f"{inner} - check --listen and --connect", 1) from None

@@ -17,11 +17,11 @@ from .errors import BadRequest, IntegrityError, StoreUnavailable, TooLarge
 
 __all__ = [
     "Retention",
+    "admit_record",
     "check_deadline",
     "check_key",
     "check_model",
     "check_pattern",
-    "check_record",
     "check_time",
     "check_value",
     "sha256",
@@ -89,7 +89,7 @@ def check_time(name: str, value: int | None) -> int | None:
     return value
 
 
-def check_record(rec: KbRecord, max_value_bytes: int) -> KbRecord:
+def admit_record(rec: KbRecord, max_value_bytes: int) -> KbRecord:
     """The key, then the bounds every replica applies too
     (:func:`rap_schemas.knowledge.check_record`)."""
     check_key(rec.key)

@@ -1,6 +1,6 @@
 """Errors of the knowledge service::
 
-KnowledgeError            carries a machine-readable ``code`` for the reply
+ServiceError              carries a machine-readable ``code`` for the reply
 ├── BadRequest            malformed key, value, pattern or operation (bad-request)
 ├── TooLarge              value or model over the configured limit (too-large)
 ├── Conflict              compare-and-set saw another version (conflict)
@@ -16,27 +16,27 @@ __all__ = [
     "BadRequest",
     "Conflict",
     "IntegrityError",
-    "KnowledgeError",
     "NotFound",
     "OutcomeUnknown",
+    "ServiceError",
     "StoreUnavailable",
     "TooLarge",
 ]
 
 
-class KnowledgeError(Exception):
+class ServiceError(Exception):
     code = "error"
 
 
-class BadRequest(KnowledgeError):
+class BadRequest(ServiceError):
     code = "bad-request"
 
 
-class TooLarge(KnowledgeError):
+class TooLarge(ServiceError):
     code = "too-large"
 
 
-class Conflict(KnowledgeError):
+class Conflict(ServiceError):
     code = "conflict"
 
     def __init__(self, key: str, expected: int | None, current: int) -> None:
@@ -47,19 +47,19 @@ class Conflict(KnowledgeError):
         self.current = current
 
 
-class NotFound(KnowledgeError):
+class NotFound(ServiceError):
     code = "not-found"
 
 
-class IntegrityError(KnowledgeError):
+class IntegrityError(ServiceError):
     code = "integrity"
 
 
-class StoreUnavailable(KnowledgeError):
+class StoreUnavailable(ServiceError):
     code = "unavailable"
 
 
-class OutcomeUnknown(KnowledgeError):
+class OutcomeUnknown(ServiceError):
     """A durable write may or may not have been stored: the backend failed mid-write and
     could not be asked before the request's budget ran out."""
 

@@ -47,13 +47,13 @@ from rap_sdk.rejections import Rejections, Throttle
 from rap_sdk.runtime import refuse_running
 
 from .config import KnowledgeConfig
-from .core import check_key, check_model, check_pattern, check_record, check_time, sha256
+from .core import admit_record, check_key, check_model, check_pattern, check_time, sha256
 from .errors import (
     BadRequest,
     Conflict,
     IntegrityError,
-    KnowledgeError,
     NotFound,
+    ServiceError,
     StoreUnavailable,
     TooLarge,
 )
@@ -133,7 +133,7 @@ class KnowledgeService:
                 rec: KbRecord = env.body
                 if sample.key != self._prefix + rec.key:
                     raise BadRequest(f"record for {rec.key!r} arrived on {sample.key!r}")
-                await self.store.apply(check_record(rec, self.config.max_value_bytes))
+                await self.store.apply(admit_record(rec, self.config.max_value_bytes))
                 self.stats.stream_applied += 1
             except RejectedSample as exc:
                 self.stats.stream_rejected += 1
@@ -169,12 +169,12 @@ class KnowledgeService:
         except DecodeRejected as exc:
             await self._rejected(self.rejections.reject(query.key, exc.reason))
             reply = self._error(BadRequest(exc.reason), quiet=True)
-        except (KnowledgeError, RapError) as exc:
+        except (ServiceError, RapError) as exc:
             reply = self._error(exc)
         except Exception as exc:  # a store or a bug: an error reply, counted; serving goes on
             if self._throttle.hit("internal"):
                 log.exception("knowledge request failed")
-            reply = self._error(KnowledgeError(f"internal error: {type(exc).__name__}: {exc}"))
+            reply = self._error(ServiceError(f"internal error: {type(exc).__name__}: {exc}"))
         key = query.key if "*" not in query.key else keys.kb(self.config.system, "_keys")
         return [Reply(key, _encode(reply))]
 
@@ -201,7 +201,7 @@ class KnowledgeService:
             deadline = None
         if isinstance(req, KbPut):
             return await self._put(
-                check_record(req.record, self.config.max_value_bytes), req.expect, deadline
+                admit_record(req.record, self.config.max_value_bytes), req.expect, deadline
             )
         if isinstance(req, KbDelete):
             rec = KbRecord(
@@ -213,7 +213,7 @@ class KnowledgeService:
                 deleted=True,
             )
             return await self._put(
-                check_record(rec, self.config.max_value_bytes), req.expect, deadline
+                admit_record(rec, self.config.max_value_bytes), req.expect, deadline
             )
         if isinstance(req, KbGet):
             latest = await store.get(check_key(req.key))

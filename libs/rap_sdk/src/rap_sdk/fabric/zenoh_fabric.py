@@ -74,6 +74,10 @@ class ZenohConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_on
     direct_callbacks: bool = True
     """Run transport callbacks on Zenoh's own thread (they only copy and hand off);
     ``False`` adds Zenoh's extra Python thread hop (measured in bench/fabric)."""
+    lease_ms: int = 3000
+    """A link to another session that stays silent this long is closed (and reported:
+    ``fabric.stats.links_down``, lost liveliness), then re-established when it can be.
+    Zenoh's own default, 10 s, let a 5 s partition pass without a trace."""
     query_handler_timeout: float = 5.0
     query_workers: int = 4
     """Tasks answering the queries of one queryable concurrently."""
@@ -88,6 +92,7 @@ class ZenohConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_on
             "listen": {"endpoints": list(self.listen)},
             "connect": {"endpoints": list(self.connect)},
             "scouting": {"multicast": {"enabled": self.multicast_scouting}},
+            "transport": {"link": {"tx": {"lease": self.lease_ms, "keep_alive": 4}}},
         }
         conf.update(self.extra)
         return json.dumps(conf)
