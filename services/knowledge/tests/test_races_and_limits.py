@@ -15,7 +15,7 @@ from knowledge.adapters.sqlite_store import SqliteStore
 from knowledge.app import open_service
 from knowledge.config import HistoryRule, KnowledgeConfig
 from knowledge.core import Retention
-from rap_schemas import Envelope, KbPut, KbRecord, KbReply, Rejection, keys
+from rap_schemas import Envelope, KbPut, KbRecord, KbReply, LidarMask, Rejection, keys
 from rap_schemas.knowledge import EPOCH_MS
 from rap_sdk import MemoryBus, MemoryFabric, Sealer
 from rap_sdk.knowledge import HybridClock, KnowledgeClient, KnowledgeError
@@ -255,3 +255,32 @@ async def test_a_value_nested_past_the_limit_is_not_stored_and_the_refusal_is_pu
         assert rejection.node == "knowledge"
         assert "more than 32 levels" in rejection.reason
         assert await w.read("k", default=None) is None
+
+
+@pytest.mark.parametrize("kind", ["memory", pytest.param("zenoh", marks=pytest.mark.zenoh)])
+async def test_a_record_of_the_wrong_type_is_refused_by_a_replica_that_reads_the_key(
+    kind: str,
+) -> None:
+    """make fuzz: a planned mask whose angle was out of range failed the analysis on every
+    scan, and only the planner (which acts after the analysis) would have written a good
+    one: the loop never closed again. A replica now refuses a value that is not what it
+    reads the key as, and keeps the last good one."""
+    async with deployment(kind) as d:
+        reader, writer = await d.client("reader"), await d.client("writer")
+        good = LidarMask(angle_min=0.0, angle_increment=0.1, occluded=[True, False])
+        await writer.write("mask", good, durable=True)
+        assert await reader.read("mask", LidarMask) == good
+        assert d.service is not None
+        fabric, forger = d.service.fabric, Sealer("forger")
+        key = keys.kb("t", "mask")
+        bad = {"angle_min": 99.0, "angle_increment": 0.1, "occluded": [True]}
+        for value in (bad, "not a mask", [1, 2, 3]):
+            payload, _ = forger.seal_message(key, record("mask", writer.clock.next(), value))
+            await fabric.publish(key, payload)
+        with anyio.fail_after(5):
+            while reader.rejections.total < 3:
+                await anyio.wait_all_tasks_blocked()
+        assert await reader.read("mask", LidarMask) == good
+        newer = LidarMask(angle_min=0.5, angle_increment=0.1, occluded=[False])
+        v = await writer.write("mask", newer)
+        assert await reader.read("mask", LidarMask, min_version=v) == newer

@@ -153,11 +153,14 @@ class Versioned(msgspec.Struct, frozen=True):
 
 
 class _Replica:
-    __slots__ = ("changed", "decoded", "key", "ready", "record", "seen_tags", "sub")
+    __slots__ = ("changed", "decoded", "key", "ready", "record", "seen_tags", "sub", "types")
 
     def __init__(self, key: str, seen_tags: set[int]) -> None:
         self.key = key
         self.seen_tags = seen_tags
+        self.types: list[Any] = []
+        """The types this client reads the key as: a record from elsewhere whose value is
+        not one of them is refused (the replica keeps its last good value)."""
         self.record: KbRecord | None = None
         self.decoded: dict[Any, Any] = {}
         self.changed = anyio.Event()
@@ -169,12 +172,12 @@ class _Replica:
     def version(self) -> int:
         return self.record.version if self.record is not None else 0
 
-    def offer(self, rec: KbRecord) -> bool:
+    def offer(self, rec: KbRecord, decoded: dict[Any, Any] | None = None) -> bool:
         if rec.version <= self.version:
             return False
         self.seen_tags.add(rec.version & 0xFF)
         self.record = rec
-        self.decoded.clear()
+        self.decoded = decoded if decoded is not None else {}
         self.changed.set()
         self.changed = anyio.Event()
         return True
@@ -418,6 +421,8 @@ class KnowledgeClient:
                 )
             return default
         rep = self._replicas[key]
+        if type is not None and type not in rep.types:
+            rep.types.append(type)
         hit = rep.decoded.get(type, _MISSING) if rep.record is rec else _MISSING
         if hit is _MISSING:
             hit = self._decode(rec, type)
@@ -511,13 +516,14 @@ class KnowledgeClient:
                     continue  # a duplicate
                 rec: KbRecord = env.body
                 self._check(rec, rep.key)
+                decoded = self._typed(rec, rep)
             except RejectedSample as exc:
                 await self._rejected(
                     self.rejections.reject(key, exc.reason, source=exc.source, type=exc.type)
                 )
                 continue
             self.clock.observe(rec.version)
-            rep.offer(rec)
+            rep.offer(rec, decoded)
             if self.opener.stats.missing > missing:  # a write went missing: catch up
                 await self._refresh_quietly(rep)
 
@@ -532,6 +538,23 @@ class KnowledgeClient:
             )
         except RecordError as exc:
             raise RejectedSample(str(exc)) from None
+
+    def _typed(self, rec: KbRecord, rep: _Replica) -> dict[Any, Any] | None:
+        """The record's value decoded as each type this client reads the key as, or
+        :class:`RejectedSample` when it is not one of them: a record of the wrong type
+        (a bug or a hostile writer) would otherwise fail every read until a good one
+        came, and stop a loop whose stages only write after they read."""
+        if rec.version <= rep.version or not rep.types or rec.deleted:
+            return None
+        decoded: dict[Any, Any] = {}
+        for t in rep.types:
+            try:
+                decoded[t] = self._decode(rec, t)
+            except KnowledgeTypeError as exc:
+                raise RejectedSample(
+                    f"{exc}; the replica keeps version {rep.version}", type=KbRecord.TYPE
+                ) from None
+        return decoded
 
     async def _rejected(self, rec: Rejection | None) -> None:
         if rec is not None and self.on_rejection is not None:
@@ -554,13 +577,14 @@ class KnowledgeClient:
         if reply.record is not None:
             try:
                 self._check(reply.record, rep.key)
+                decoded = self._typed(reply.record, rep)
             except RejectedSample as exc:
                 await self._rejected(
                     self.rejections.reject(keys.kb(self.system, rep.key), f"service reply: {exc}")
                 )
                 return
             self.clock.observe(reply.record.version)
-            rep.offer(reply.record)
+            rep.offer(reply.record, decoded)
 
     # -- history, listing ------------------------------------------------------------------
 
