@@ -1,0 +1,154 @@
+"""CPU work per loop cycle, counted in instructions under callgrind (no drift with load).
+
+    python -m bench.loop.instructions [--cycles 300]
+
+Three children, each run twice under ``valgrind --tool=callgrind`` with ``N`` and ``2N``
+cycles after the same warm-up; the difference of the two totals divided by ``N`` is the
+cost of one cycle, with start-up, imports and warm-up cancelled out:
+
+- ``direct``: the five handlers of the race's chain called directly on a dict
+  (``chain.handlers``): what the loop's own logic costs;
+- ``chain``: the robot, the five nodes and the knowledge service in one process on the
+  in-memory fabric, one scan at a time (send, wait for the plan): what RAP adds;
+- ``chain-traced``: the same with a subscriber to every trace record (as a trust checker
+  or a cycle tracker in the process would be).
+
+The children run on uvloop, as RAP's processes do. Results: instructions per cycle, and
+the ratio of each chain to ``direct``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+WARMUP = 50
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _child(kind: str, cycles: int) -> None:
+    """Run ``WARMUP + cycles`` cycles of ``kind`` and exit."""
+    from bench.loop.chain import handlers
+    from bench.loop.rap import make_scan
+
+    scan = make_scan()
+    if kind == "direct":
+        cycle = handlers(time.time_ns)
+        for _ in range(WARMUP + cycles):
+            assert cycle(scan) is not None
+        return
+    import anyio
+
+    anyio.run(_chain, kind == "chain-traced", cycles, backend_options={"use_uvloop": True})
+
+
+async def _chain(traced: bool, cycles: int) -> None:
+    import anyio
+    from knowledge.app import open_service
+    from knowledge.config import KnowledgeConfig
+    from rap_schemas import keys
+    from rap_sdk import MemoryFabric, NodeRuntime, run_nodes
+
+    from bench.loop import chain
+    from bench.loop.rap import SYSTEM, Robot, make_scan
+
+    nodes = [chain.monitor, chain.analysis, chain.planner, chain.legitimator, chain.executor]
+    robot = Robot()
+    scan = make_scan()
+    key = keys.data(SYSTEM, f"{chain.ROBOT}/scan")
+    async with (
+        MemoryFabric() as fabric,
+        open_service(KnowledgeConfig(system=SYSTEM), fabric=fabric),
+        run_nodes(nodes, fabric=fabric, system=SYSTEM),
+        anyio.create_task_group() as tg,
+    ):
+        if traced:
+            sub = fabric.subscribe(keys.pattern(SYSTEM, keys.Kind.TRACE))
+
+            async def drain() -> None:
+                async for _ in sub:
+                    pass
+
+            tg.start_soon(drain)
+        rt = NodeRuntime(robot.node, fabric=fabric, system=SYSTEM, trace=False)
+        await tg.start(rt.run)
+        for _ in range(WARMUP + cycles):
+            robot.arrived = anyio.Event()
+            robot.sending = False
+            env = await rt.send(key, scan)
+            robot.sent[env.uid] = 0
+            with anyio.fail_after(5):
+                await robot.arrived.wait()
+        rt.stop()
+        tg.cancel_scope.cancel()
+
+
+_TOTAL = re.compile(r"^(?:summary|totals):\s+(\d+)", re.MULTILINE)
+
+
+def _instructions(kind: str, cycles: int) -> int:
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "callgrind.out"
+        env = {**os.environ, "PYTHONHASHSEED": "0", "RERUN_ANALYTICS": "0"}
+        subprocess.run(
+            [
+                "valgrind",
+                "--tool=callgrind",
+                f"--callgrind-out-file={out}",
+                sys.executable,
+                "-m",
+                "bench.loop.instructions",
+                "--child",
+                kind,
+                "--cycles",
+                str(cycles),
+            ],
+            cwd=ROOT,
+            env=env,
+            check=True,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        found = _TOTAL.search(out.read_text(errors="replace"))
+        if found is None:
+            raise RuntimeError(f"no instruction total in callgrind's output for {kind}")
+        return int(found.group(1))
+
+
+def measure(cycles: int = 300, kinds: tuple[str, ...] = ("direct", "chain", "chain-traced")) -> dict[str, Any]:
+    """Instructions per cycle of each kind (and its ratio to ``direct``)."""
+    if shutil.which("valgrind") is None:
+        raise RuntimeError("valgrind is not installed (apt-get install valgrind)")
+    out: dict[str, Any] = {"cycles": cycles, "warmup": WARMUP}
+    for kind in kinds:
+        one, two = _instructions(kind, cycles), _instructions(kind, 2 * cycles)
+        out[kind] = round((two - one) / cycles)
+        print(f"  {kind}: {out[kind]:,} instructions per cycle", file=sys.stderr, flush=True)
+    direct = out.get("direct")
+    for kind in kinds:
+        if direct and kind != "direct":
+            out[f"{kind}_vs_direct"] = round(out[kind] / direct, 2)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(prog="python -m bench.loop.instructions", description=__doc__)
+    ap.add_argument("--cycles", type=int, default=300)
+    ap.add_argument("--child", choices=["direct", "chain", "chain-traced"])
+    a = ap.parse_args()
+    if a.child:
+        _child(a.child, a.cycles)
+        return
+    print(measure(a.cycles))
+
+
+if __name__ == "__main__":
+    main()
