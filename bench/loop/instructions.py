@@ -123,7 +123,9 @@ def _instructions(kind: str, cycles: int) -> int:
         return int(found.group(1))
 
 
-def measure(cycles: int = 300, kinds: tuple[str, ...] = ("direct", "chain", "chain-traced")) -> dict[str, Any]:
+def measure(
+    cycles: int = 300, kinds: tuple[str, ...] = ("direct", "chain", "chain-traced")
+) -> dict[str, Any]:
     """Instructions per cycle of each kind (and its ratio to ``direct``)."""
     if shutil.which("valgrind") is None:
         raise RuntimeError("valgrind is not installed (apt-get install valgrind)")
