@@ -141,12 +141,13 @@ async def test_a_second_runner_of_the_same_share_refuses_to_start(tmp_path: Path
     exits 1."""
     path = tmp_path / "plan.yaml"
     path.write_text(PLAN, encoding="utf-8")
+    first_ep = f"tcp/127.0.0.1:{free_port()}"
     async with Harness(system="demo", fabric="zenoh", timeout=20) as h:
         with h.fabric.watch_liveliness(keys.pattern("demo", keys.Kind.ALIVE)) as watch:
             first = await anyio.open_process(
                 [
                     *(sys.executable, "-m", "maplek_runner", str(path), "--node", "laptop"),
-                    *("--connect", h.endpoint, "--listen", f"tcp/127.0.0.1:{free_port()}"),
+                    *("--connect", h.endpoint, "--listen", first_ep),
                 ],
                 cwd=REPO,
             )
@@ -155,7 +156,8 @@ async def test_a_second_runner_of_the_same_share_refuses_to_start(tmp_path: Path
                 with anyio.fail_after(20):
                     while alive != {"echo", "relay"}:
                         alive.add(keys.parse((await watch.get()).key).name)
-                second = await _runner(str(path), "--node", "laptop", "--connect", h.endpoint)
+                # linked to the first (peers do not relay each other's declarations)
+                second = await _runner(str(path), "--node", "laptop", "--connect", first_ep)
             finally:
                 first.terminate()
                 await first.wait()

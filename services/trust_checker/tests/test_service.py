@@ -87,8 +87,11 @@ async def test_a_spec_whose_values_grow_without_bound_does_not_stop_the_checker(
             await s.session.submit(Arrival({"x": 1.0}, 1_000 + i, "test"))
         await s.session.wait_idle()
     out = capsys.readouterr().out
-    assert out.count("ok[") == 1500
-    assert 1400 < s.session.stats.eval_errors < 1500
+    stats = s.session.stats
+    assert stats.ticks + stats.eval_errors >= 1500  # every input was taken, none stopped it
+    assert out.count("ok[") == stats.ticks  # ok came out at every tick that evaluated
+    assert out.count("ok[") > 1000
+    assert out.count("y[") < 100  # y only while it was shallow
 
 
 async def test_a_map_that_grows_with_its_input_is_bounded() -> None:
