@@ -30,38 +30,46 @@ import time
 from pathlib import Path
 from typing import Any
 
+import anyio
+from knowledge.app import open_service
+from knowledge.config import KnowledgeConfig
+from rap_schemas import SpinPlan, keys
+from rap_sdk import Context, MemoryFabric, Node, NodeRuntime, run_nodes
+
+from bench.loop import chain
+from bench.loop.chain import handlers
+from bench.loop.rap import SYSTEM, make_scan
+
 WARMUP = 50
 ROOT = Path(__file__).resolve().parents[2]
 
 
 def _child(kind: str, cycles: int) -> None:
     """Run ``WARMUP + cycles`` cycles of ``kind`` and exit."""
-    from bench.loop.chain import handlers
-    from bench.loop.rap import make_scan
-
     scan = make_scan()
     if kind == "direct":
         cycle = handlers(time.time_ns)
         for _ in range(WARMUP + cycles):
             assert cycle(scan) is not None
         return
-    import anyio
-
     anyio.run(_chain, kind == "chain-traced", cycles, backend_options={"use_uvloop": True})
 
 
+class _Robot:
+    """Sends a scan and waits for the plan it causes."""
+
+    def __init__(self) -> None:
+        self.node = Node("robot")
+        self.got = anyio.Event()
+
+        @self.node.on_data(f"{chain.ROBOT}/spin_config")
+        async def plan(ctx: Context, p: SpinPlan) -> None:
+            self.got.set()
+
+
 async def _chain(traced: bool, cycles: int) -> None:
-    import anyio
-    from knowledge.app import open_service
-    from knowledge.config import KnowledgeConfig
-    from rap_schemas import keys
-    from rap_sdk import MemoryFabric, NodeRuntime, run_nodes
-
-    from bench.loop import chain
-    from bench.loop.rap import SYSTEM, Robot, make_scan
-
     nodes = [chain.monitor, chain.analysis, chain.planner, chain.legitimator, chain.executor]
-    robot = Robot()
+    robot = _Robot()
     scan = make_scan()
     key = keys.data(SYSTEM, f"{chain.ROBOT}/scan")
     async with (
@@ -81,12 +89,10 @@ async def _chain(traced: bool, cycles: int) -> None:
         rt = NodeRuntime(robot.node, fabric=fabric, system=SYSTEM, trace=False)
         await tg.start(rt.run)
         for _ in range(WARMUP + cycles):
-            robot.arrived = anyio.Event()
-            robot.sending = False
-            env = await rt.send(key, scan)
-            robot.sent[env.uid] = 0
+            robot.got = anyio.Event()
+            await rt.send(key, scan)
             with anyio.fail_after(5):
-                await robot.arrived.wait()
+                await robot.got.wait()
         rt.stop()
         tg.cancel_scope.cancel()
 
