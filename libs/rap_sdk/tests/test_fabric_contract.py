@@ -28,7 +28,7 @@ from rap_sdk import (
     ZenohConfig,
     ZenohFabric,
 )
-from rap_sdk.fabric import Fabric
+from rap_sdk.fabric import Fabric, Outgoing
 from rap_sdk.testing import free_port
 
 pytestmark = pytest.mark.anyio
@@ -395,3 +395,62 @@ async def test_prepare_runs_before_the_consumer_or_leaves_none(pair: tuple[Any, 
     assert [s.payload for s in got_remote] == payloads
     # from another process it may not have finished when the loop takes the sample
     assert all(s.prepared in (None, w) for s, w in zip(got_remote, [7, None, 9], strict=True))
+
+
+# -- local objects (Outgoing): handed over as they are, encoded once when needed ----------
+
+
+class _Counted:
+    """An encoder that counts its calls."""
+
+    def __init__(self) -> None:
+        self.calls = 0
+
+    def __call__(self, obj: Any) -> bytes:
+        self.calls += 1
+        return repr(obj).encode()
+
+
+async def test_a_local_object_is_handed_over_and_never_encoded_for_local_subscribers(
+    pair: tuple[Any, Any],
+) -> None:
+    a, _ = pair
+    s1, s2 = a.subscribe("rap/s/data/obj"), a.subscribe("rap/s/data/obj")
+    enc, obj = _Counted(), ("frozen", 1)
+    await a.publish("rap/s/data/obj", Outgoing(obj, enc))
+    got1, got2 = await get(s1), await get(s2)
+    assert got1.obj is obj
+    assert got2.obj is obj
+    assert got1.size == 0
+    assert not got1.remote
+    assert enc.calls == 0  # nobody needed the bytes
+    assert got1.payload == got2.payload == b"('frozen', 1)"
+    assert enc.calls == 1  # made once, for both
+
+
+async def test_a_local_object_reaches_another_process_as_bytes_encoded_once(
+    pair: tuple[Any, Any],
+) -> None:
+    a, b = pair
+    remote1, remote2 = b.subscribe("rap/s/data/obj"), b.subscribe("rap/s/data/obj")
+    await a.wait_matched("rap/s/data/obj")
+    enc = _Counted()
+    await a.publish("rap/s/data/obj", Outgoing(("x",), enc))
+    r1, r2 = await get(remote1), await get(remote2)
+    assert r1.obj is None
+    assert r1.remote
+    assert r1.payload == r2.payload == b"('x',)"
+    assert enc.calls == 1
+
+
+async def test_a_subscription_of_the_publishers_group_is_skipped(pair: tuple[Any, Any]) -> None:
+    a, _ = pair
+    group = object()
+    fed = a.subscribe("rap/s/kb/k", group=group)
+    other = a.subscribe("rap/s/kb/k")
+    await a.publish("rap/s/kb/k", Outgoing(1, _Counted(), group))
+    await a.publish("rap/s/kb/k", b"bytes")  # bytes always reach every subscriber
+    assert (await get(other)).obj == 1
+    assert (await get(other)).payload == b"bytes"
+    assert (await get(fed)).payload == b"bytes"
+    assert fed.get_nowait() is None

@@ -83,7 +83,8 @@ def decode_failure(exc: BaseException) -> str:
 
 def check_depth(value: Any, max_depth: int = MAX_DEPTH, what: str = "value") -> Any:
     """``value`` if its lists, tuples and maps nest at most ``max_depth`` levels, else
-    :class:`DecodeRejected`. Iterative: any depth is measured without recursion."""
+    :class:`DecodeRejected`. Iterative: any depth is measured without recursion; a
+    container of scalars only (a scan's ranges) is passed over at C speed."""
     stack: list[tuple[Any, int]] = [(value, 0)]
     pop, push = stack.pop, stack.append
     while stack:
@@ -98,10 +99,24 @@ def check_depth(value: Any, max_depth: int = MAX_DEPTH, what: str = "value") -> 
             raise DecodeRejected(
                 f"{what} nests lists or maps more than {max_depth} levels deep; flatten it"
             )
+        if not any(_container_type(k) for k in set(map(type, children))):
+            continue  # scalars only
         for child in children:
             if isinstance(child, (list, tuple, dict)):
                 push((child, depth + 1))
     return value
+
+
+_CONTAINER_TYPES: dict[type, bool] = {}
+
+
+def _container_type(cls: type) -> bool:
+    hit = _CONTAINER_TYPES.get(cls)
+    if hit is None:
+        hit = issubclass(cls, (list, tuple, dict))
+        if len(_CONTAINER_TYPES) < 1024:
+            _CONTAINER_TYPES[cls] = hit
+    return hit
 
 
 class SafeDecoder(Generic[T]):

@@ -20,6 +20,7 @@ from rap_schemas import Empty, Envelope, Message
 from rap_schemas.limits import DECODE_ERRORS, decode_failure
 
 from .errors import RejectedSample
+from .fabric._types import Outgoing
 
 __all__ = [
     "Clock",
@@ -152,6 +153,21 @@ class Sealer:
             message = _EMPTY
         return self._seal(key, message.TYPE, message, cycle, cause, ctx)
 
+    def seal_out(
+        self,
+        key: str,
+        message: Message | None,
+        *,
+        cycle: bytes | None = None,
+        cause: bytes | None = None,
+        ctx: dict[str, int] | None = None,
+    ) -> Outgoing:
+        """Seal a typed message for :meth:`Fabric.publish`: local subscribers may take
+        the envelope object itself; the bytes are made once, when first needed."""
+        if message is None:
+            message = _EMPTY
+        return Outgoing(self._envelope(key, message.TYPE, message, cycle, cause, ctx), _encode)
+
     def seal(
         self,
         key: str,
@@ -175,10 +191,22 @@ class Sealer:
         cause: bytes | None,
         ctx: dict[str, int] | None,
     ) -> tuple[bytes, OutgoingEnvelope]:
+        env = self._envelope(key, type_name, body, cycle, cause, ctx)
+        return _encode(env), env
+
+    def _envelope(
+        self,
+        key: str,
+        type_name: str,
+        body: Any,
+        cycle: bytes | None,
+        cause: bytes | None,
+        ctx: dict[str, int] | None,
+    ) -> OutgoingEnvelope:
         seq = self._seq.get(key, 0)
         self._seq[key] = seq + 1
         ts = self._now()
-        env = OutgoingEnvelope(
+        return OutgoingEnvelope(
             uid=new_uid(ts),
             ts=ts,
             source=self.source,
@@ -189,7 +217,6 @@ class Sealer:
             cause=cause,
             ctx=ctx or {},
         )
-        return _encode(env), env
 
 
 @dataclass(slots=True)

@@ -19,6 +19,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import time
+import weakref
 import zlib
 from collections.abc import Awaitable, Callable
 from types import TracebackType
@@ -183,6 +184,32 @@ class _Replica:
         return True
 
 
+class _Colocated:
+    """The knowledge clients of one system on one fabric (in one process). A write is
+    handed to the others' replicas directly, value object and all: a co-located reader
+    gets what was written with no decoding and no task woken up; the fabric then skips
+    their replicas' subscriptions for it (``group``) and takes it to everyone else."""
+
+    __slots__ = ("clients",)
+
+    def __init__(self) -> None:
+        self.clients: list[KnowledgeClient] = []
+
+
+_COLOCATED: weakref.WeakKeyDictionary[Any, dict[str, _Colocated]] = weakref.WeakKeyDictionary()
+_FROZEN: dict[type, bool] = {}
+
+
+def _shareable(value: Any) -> bool:
+    """Whether ``value`` may be handed to other readers as it is: a frozen Struct."""
+    cls = type(value)
+    frozen = _FROZEN.get(cls)
+    if frozen is None:
+        config = getattr(cls, "__struct_config__", None)
+        frozen = _FROZEN[cls] = bool(config is not None and config.frozen)
+    return frozen
+
+
 class KnowledgeClient:
     def __init__(
         self,
@@ -219,6 +246,8 @@ class KnowledgeClient:
         self._tg: TaskGroup | None = None
         self._tg_cm: Any = None
         self._decode_env = typed_decoder(KbRecord)
+        self._group = _Colocated()
+        """The clients of this system on this fabric (set when the client opens)."""
         self.waits = 0
         """Reads that had to wait for the version their trigger promised."""
         self.catch_ups = 0
@@ -234,6 +263,14 @@ class KnowledgeClient:
         """Tags whose every node's liveliness token went away."""
 
     async def __aenter__(self) -> KnowledgeClient:
+        by_system = _COLOCATED.get(self.fabric)
+        if by_system is None:
+            by_system = _COLOCATED[self.fabric] = {}
+        group = by_system.get(self.system)
+        if group is None:
+            group = by_system[self.system] = _Colocated()
+        group.clients.append(self)
+        self._group = group
         self._tg_cm = anyio.create_task_group()
         self._tg = await self._tg_cm.__aenter__()
         self._tg.start_soon(self._watch_service)
@@ -306,6 +343,8 @@ class KnowledgeClient:
         for rep in self._replicas.values():
             if rep.sub is not None:
                 rep.sub.close()
+        if self in self._group.clients:
+            self._group.clients.remove(self)
         assert self._tg is not None
         self._tg.cancel_scope.cancel()
         await self._tg_cm.__aexit__(et, ev, tb)
@@ -321,8 +360,14 @@ class KnowledgeClient:
         Without ``durable`` the write goes out on the write stream and returns at once.
         ``durable=True`` waits for the service's acknowledgement; ``expect`` (0: the key
         must not exist) makes it a compare-and-set, always through the service. A value
-        over ``max_value_bytes`` raises ``KnowledgeError`` (``too-large``): the service
-        and every replica would refuse it."""
+        over ``max_value_bytes`` raises ``KnowledgeError`` (``too-large``), plain data
+        nested more than ``MAX_DEPTH`` levels ``bad-request``: the service and every
+        replica would refuse them (a Struct's own fields are typed: not walked)."""
+        if not isinstance(value, msgspec.Struct):
+            try:
+                check_depth(value, MAX_DEPTH, f"the value for {key!r}")
+            except DecodeRejected as exc:
+                raise KnowledgeError(exc.reason, "bad-request") from None
         encoded = _encode(value)
         if len(encoded) > self.max_value_bytes:
             raise KnowledgeError(
@@ -330,10 +375,11 @@ class KnowledgeClient:
                 f"{self.max_value_bytes}; store large artefacts in the model store",
                 "too-large",
             )
-        return await self._submit(self._record(key, msgspec.Raw(encoded), False), durable, expect)
+        rec = self._record(key, msgspec.Raw(encoded), False)
+        return await self._submit(rec, durable, expect, value)
 
     async def delete(self, key: str, *, durable: bool = False, expect: int | None = None) -> int:
-        return await self._submit(self._record(key, _NIL, True), durable, expect)
+        return await self._submit(self._record(key, _NIL, True), durable, expect, None)
 
     def _record(self, key: str, value: msgspec.Raw, deleted: bool) -> KbRecord:
         self._check_key(key)
@@ -346,9 +392,10 @@ class KnowledgeClient:
             deleted=deleted,
         )
 
-    async def _submit(self, rec: KbRecord, durable: bool, expect: int | None) -> int:
+    async def _submit(self, rec: KbRecord, durable: bool, expect: int | None, value: Any) -> int:
         """Durable (or compare-and-set, ``expect`` given): through the service and
-        acknowledged; else out on the write stream."""
+        acknowledged; else out on the write stream. Replicas here and in co-located
+        clients get the record (and ``value``, when it is a frozen Struct) directly."""
         if durable or expect is not None:
             # the service stores it within its budget or never, and answers before this
             # client stops waiting: a write reported failed is never stored later
@@ -359,11 +406,16 @@ class KnowledgeClient:
             self.clock.observe(reply.version)
         else:
             key = self._kb_key(rec.key)
-            payload, _ = self.sealer.seal_message(key, rec)
-            await self.fabric.publish(key, payload)
+            out = self.sealer.seal_out(key, rec)
+            out.group = self._group
+            await self.fabric.publish(key, out)
+        shared = value is not None and _shareable(value)
+        for other in self._group.clients:
+            if other is not self and rec.key in other._replicas:
+                await other._handed(rec, value if shared else None)
         rep = self._replicas.get(rec.key)
         if rep is not None:
-            rep.offer(rec)
+            rep.offer(rec, {type(value): value} if shared and type(value) in rep.types else None)
         else:  # read-your-own-writes: a replica made later starts from this record
             own = self._own
             own.pop(rec.key, None)
@@ -487,7 +539,7 @@ class KnowledgeClient:
             raise LifecycleError("KnowledgeClient is not open: use 'async with'")
         rep = self._replicas[key] = _Replica(key, self._seen_tags)
         rep.sub = self.fabric.subscribe(
-            keys.kb(self.system, key), self._policy, prepare=self._decode_env
+            keys.kb(self.system, key), self._policy, prepare=self._decode_env, group=self._group
         )
         self._tg.start_soon(self._follow, rep)
         try:
@@ -496,6 +548,12 @@ class KnowledgeClient:
             own = self._own.pop(key, None)
             if own is not None:
                 rep.offer(own)  # newer than what the service had stored yet, if it is
+            for other in self._group.clients:  # co-located writes the service may not
+                if other is not self:  # have stored yet
+                    known = other._replicas.get(key)
+                    rec = known.record if known is not None else other._own.get(key)
+                    if rec is not None and rec.version > rep.version:
+                        rep.offer(rec)
             rep.ready.set()
         return rep
 
@@ -526,6 +584,28 @@ class KnowledgeClient:
             rep.offer(rec, decoded)
             if self.opener.stats.missing > missing:  # a write went missing: catch up
                 await self._refresh_quietly(rep)
+
+    async def _handed(self, rec: KbRecord, value: Any) -> None:
+        """A co-located client wrote ``rec`` (``value``: the written object, when it
+        is a frozen Struct): adopted as a record from the stream would be, but read as
+        the written object where this client reads the key as exactly its type."""
+        rep = self._replicas[rec.key]
+        if rec.version <= rep.version:
+            return
+        types = rep.types
+        if value is not None and len(types) == 1 and types[0] is type(value):
+            decoded: dict[Any, Any] | None = {types[0]: value}
+        else:
+            try:
+                decoded = self._typed(rec, rep)
+            except RejectedSample as exc:
+                key = self._kb_key(rec.key)
+                await self._rejected(
+                    self.rejections.reject(key, exc.reason, source=rec.writer, type=exc.type)
+                )
+                return
+        self.clock.observe(rec.version)
+        rep.offer(rec, decoded)
 
     def _check(self, rec: KbRecord, key: str) -> None:
         """The bounds the service applies (a replica must not adopt for good what the

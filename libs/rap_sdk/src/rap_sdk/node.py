@@ -20,6 +20,7 @@ fabric through :func:`rap_sdk.run_nodes` or :func:`rap_sdk.run`.
 from __future__ import annotations
 
 import inspect
+import types
 import typing
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
@@ -43,7 +44,15 @@ from .envelope import TypedEnvelope, typed_decoder
 from .errors import ConfigError, HandlerError
 from .inbox import InboxPolicy, Overflow
 
-__all__ = ["DATA_POLICY", "EVENT_POLICY", "TRUST_POLICY", "Node", "Route", "message_class"]
+__all__ = [
+    "DATA_POLICY",
+    "EVENT_POLICY",
+    "TRUST_POLICY",
+    "Node",
+    "Route",
+    "acceptor",
+    "message_class",
+]
 
 F = TypeVar("F", bound=Callable[..., Awaitable[None]])
 
@@ -80,6 +89,10 @@ class Route:
     """A further check of a decoded body (None: accept); a reason rejects the sample."""
     max_bytes: int = MAX_SAMPLE_BYTES
     """Samples larger than this are rejected before they are decoded."""
+    accepts: Callable[[Any], bool] | None = None
+    """Whether a message object sent in this process is of the route's type, so that it
+    may be handed over as it is, with no encoding nor decoding (None: never; the sample
+    is then decoded from its bytes)."""
 
     @property
     def handler_name(self) -> str:
@@ -128,6 +141,65 @@ def message_class(ann: Any) -> type[Message] | None:
     if isinstance(cls, type) and issubclass(cls, Message) and cls.TYPE:
         return cls
     return None
+
+
+def acceptor(tp: Any) -> Callable[[Any], bool] | None:
+    """A check that an object is exactly of type ``tp`` (a frozen Struct, or a
+    parametrized generic one such as ``PlanProposal[SpinPlan]``, its type parameters
+    checked in the fields that hold them), or None when ``tp`` cannot be checked so
+    cheaply: local objects are then not handed over as they are. A mutable Struct is
+    never handed over (a receiver could change the sender's object)."""
+    if tp is None or tp is type(None):
+        return lambda v: v is None
+    origin = typing.get_origin(tp)
+    if origin is typing.Union or origin is types.UnionType:
+        alts = [acceptor(a) for a in typing.get_args(tp)]
+        if any(a is None for a in alts):
+            return None
+        checks = tuple(a for a in alts if a is not None)
+        return lambda v: any(c(v) for c in checks)
+    if origin is None:
+        if isinstance(tp, type) and issubclass(tp, msgspec.Struct):
+            if not tp.__struct_config__.frozen:
+                return None
+            return lambda v: type(v) is tp
+        return None
+    if not (isinstance(origin, type) and issubclass(origin, msgspec.Struct)):
+        return None
+    if not origin.__struct_config__.frozen:
+        return None
+    bound = dict(zip(getattr(origin, "__parameters__", ()), typing.get_args(tp), strict=False))
+    fields: list[tuple[str, Callable[[Any], bool]]] = []
+    for name, ann in typing.get_type_hints(origin).items():
+        if name not in origin.__struct_fields__ or not _has_params(ann):
+            continue
+        check = acceptor(_bind(ann, bound))
+        if check is None:
+            return None
+        fields.append((name, check))
+
+    def accepts(v: Any) -> bool:
+        return type(v) is origin and all(c(getattr(v, n)) for n, c in fields)
+
+    return accepts
+
+
+def _has_params(ann: Any) -> bool:
+    return isinstance(ann, TypeVar) or any(_has_params(a) for a in typing.get_args(ann))
+
+
+def _bind(ann: Any, bound: dict[Any, Any]) -> Any:
+    """``ann`` with its type variables replaced by what ``bound`` maps them to."""
+    if isinstance(ann, TypeVar):
+        return bound.get(ann, Any)
+    args = typing.get_args(ann)
+    if not args:
+        return ann
+    new = tuple(_bind(a, bound) for a in args)
+    origin = typing.get_origin(ann)
+    if origin is typing.Union or origin is types.UnionType:
+        return typing.Union[new]  # noqa: UP007 (built from a tuple)
+    return ann.__origin__[new] if len(new) > 1 else ann.__origin__[new[0]]
 
 
 class Node:
@@ -217,6 +289,7 @@ class Node:
                     policy,
                     check,
                     MAX_SAMPLE_BYTES if max_bytes is None else max_bytes,
+                    acceptor(wire),
                 )
             )
             return fn

@@ -311,9 +311,9 @@ class NodeRuntime:
         """Seal and publish ``message`` on ``key`` (a full key from rap_schemas.keys). A
         local node whose FIFO inbox stays full for ``SEND_TIMEOUT`` s does not get it
         (counted in ``stats.send_timeouts``, logged); everyone else does."""
-        payload, env = self.sealer.seal_message(key, message, cycle=cycle, cause=cause, ctx=ctx)
+        out = self.sealer.seal_out(key, message, cycle=cycle, cause=cause, ctx=ctx)
         try:
-            await self.fabric.publish(key, payload, timeout=SEND_TIMEOUT)
+            await self.fabric.publish(key, out, timeout=SEND_TIMEOUT)
         except BackpressureTimeout:
             self.stats.send_timeouts += 1
             if self._drop_log.hit(f"send {key}"):
@@ -326,7 +326,7 @@ class NodeRuntime:
                     self.stats.send_timeouts,
                 )
         self.stats.sent += 1
-        return env
+        return out.obj  # type: ignore[no-any-return]
 
     async def _trace(
         self,
@@ -419,16 +419,21 @@ class NodeRuntime:
         """Open, check, decode and dispatch one sample to ``route``'s handler."""
         self.stats.received += 1
         try:
-            if len(sample.payload) > route.max_bytes:
-                raise RejectedSample(
-                    f"sample of {len(sample.payload)} bytes is over the route's limit of "
-                    f"{route.max_bytes} (max_bytes= on the handler's decorator)"
+            env = sample.obj
+            accepts = route.accepts
+            if env is None or accepts is None or not accepts(env.body):
+                # bytes from elsewhere (or a local object of another type: decoded from
+                # its bytes, and rejected with the reason if it does not fit)
+                if sample.size > route.max_bytes:
+                    raise RejectedSample(
+                        f"sample of {sample.size} bytes is over the route's limit of "
+                        f"{route.max_bytes} (max_bytes= on the handler's decorator)"
+                    )
+                env = self.opener.open_typed(
+                    sample.key, sample.payload, route.decode, route.msg_type.TYPE, sample.prepared
                 )
-            env = self.opener.open_typed(
-                sample.key, sample.payload, route.decode, route.msg_type.TYPE, sample.prepared
-            )
-            if env is None:
-                return  # duplicate, counted by the opener
+                if env is None:
+                    return  # duplicate, counted by the opener
             if route.check is not None:
                 reason = route.check(env.body)
                 if reason is not None:

@@ -89,15 +89,18 @@ def check_time(name: str, value: int | None) -> int | None:
     return value
 
 
-def admit_record(rec: KbRecord, max_value_bytes: int) -> KbRecord:
+def admit_record(rec: KbRecord, max_value_bytes: int, *, local: bool = False) -> KbRecord:
     """The key, then the bounds every replica applies too
-    (:func:`rap_schemas.knowledge.check_record`)."""
+    (:func:`rap_schemas.knowledge.check_record`), then the value's nesting, except for
+    a record written in this process (``local``): its writer checked the value's
+    nesting before encoding it (:meth:`rap_sdk.KnowledgeClient.write`)."""
     check_key(rec.key)
     try:
         bounds(rec, now_ms=time.time_ns() // 1_000_000, max_value_bytes=max_value_bytes)
     except RecordError as exc:
         raise (TooLarge if exc.code == "too-large" else BadRequest)(str(exc)) from None
-    check_value(rec)
+    if not local:
+        check_value(rec)
     return rec
 
 

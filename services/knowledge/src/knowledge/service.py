@@ -125,15 +125,18 @@ class KnowledgeService:
             except LifecycleError:
                 return
             try:
-                env = self.opener.open_typed(
-                    sample.key, sample.payload, _STREAM, KbRecord.TYPE, sample.prepared
-                )
+                env = sample.obj  # a record written in this process: no decoding
+                local = env is not None and type(env.body) is KbRecord
+                if not local:
+                    env = self.opener.open_typed(
+                        sample.key, sample.payload, _STREAM, KbRecord.TYPE, sample.prepared
+                    )
                 if env is None or env.source == NODE:
                     continue  # a duplicate, or our own republication of a durable write
                 rec: KbRecord = env.body
                 if sample.key != self._prefix + rec.key:
                     raise BadRequest(f"record for {rec.key!r} arrived on {sample.key!r}")
-                await self.store.apply(admit_record(rec, self.config.max_value_bytes))
+                await self.store.apply(admit_record(rec, self.config.max_value_bytes, local=local))
                 self.stats.stream_applied += 1
             except RejectedSample as exc:
                 self.stats.stream_rejected += 1

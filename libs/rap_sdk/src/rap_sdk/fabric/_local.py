@@ -18,7 +18,15 @@ from rap_schemas.limits import DECODE_ERRORS
 from ..errors import BackpressureTimeout, LifecycleError, QueryError
 from ..inbox import Inbox, InboxPolicy, InboxStats
 from ..keyexpr import intersects
-from ._types import LivelinessChange, Prepare, QueryHandler, QueryRequest, Reply, Sample
+from ._types import (
+    LivelinessChange,
+    Outgoing,
+    Prepare,
+    QueryHandler,
+    QueryRequest,
+    Reply,
+    Sample,
+)
 
 log = logging.getLogger(__name__)
 
@@ -81,22 +89,25 @@ class LocalSubscription(InboxStream[Sample]):
         policy: InboxPolicy,
         on_close: Callable[[InboxStream[Sample]], None],
         prepare: Prepare | None = None,
+        group: object = None,
     ) -> None:
         super().__init__(policy, on_close, _payload_size)
+        self.group = group
         self.key_expr = key_expr
         self.remote_handle: object | None = None
         self.prepare = prepare
 
-    def sample(self, key: str, payload: bytes, remote: bool) -> Sample:
-        """A sample for this subscription, prepared in the calling thread."""
+    def sample(self, key: str, payload: bytes | Outgoing, remote: bool) -> Sample:
+        """A sample for this subscription, prepared in the calling thread (a local
+        object is not: the consumer takes the object, or decodes what it needs)."""
         s = Sample(key, payload, remote, arrived=monotonic())
-        if self.prepare is not None:
+        if self.prepare is not None and type(payload) is bytes:
             s.prepared = prepared(self.prepare, payload)
         return s
 
 
 def _payload_size(sample: Sample) -> int:
-    return len(sample.payload)
+    return sample.size
 
 
 def prepared(prepare: Prepare, payload: bytes) -> Any:
@@ -137,7 +148,10 @@ class Router:
 
     @staticmethod
     async def deliver(
-        subs: tuple[LocalSubscription, ...], key: str, payload: bytes, timeout: float | None
+        subs: tuple[LocalSubscription, ...],
+        key: str,
+        payload: bytes | Outgoing,
+        timeout: float | None,
     ) -> BackpressureTimeout | None:
         """Hand a locally published sample to this process's matching subscribers
         (``subs``, from :meth:`matching`; FIFO inboxes with ``block`` make the publisher
@@ -146,7 +160,10 @@ class Router:
         others still do; the timeout is returned for the caller to raise once the
         sample has gone everywhere else. Callers skip the call when ``subs`` is empty."""
         late: BackpressureTimeout | None = None
+        group = payload.group if isinstance(payload, Outgoing) else None
         for sub in subs:
+            if group is not None and sub.group is group:
+                continue  # its owner was handed the sample by the publisher
             sample = sub.sample(key, payload, False)
             if not sub.inbox.put_nowait(sample):
                 try:

@@ -14,6 +14,7 @@ __all__ = [
     "FabricStats",
     "LivelinessChange",
     "LivelinessWatch",
+    "Outgoing",
     "Prepare",
     "QueryHandler",
     "QueryRequest",
@@ -25,19 +26,91 @@ __all__ = [
 ]
 
 
-@dataclass(slots=True)
+class Outgoing:
+    """A message on its way out: the sender's envelope object and its encoding, made at
+    most once, when first needed (a subscriber in another process, or a local one that
+    reads the bytes). Local subscribers may receive the object itself: it is shared,
+    so it must never be modified (RAP's messages are frozen Structs)."""
+
+    __slots__ = ("_data", "_encode", "group", "obj")
+
+    def __init__(self, obj: Any, encode: Callable[[Any], bytes], group: object = None) -> None:
+        self.obj = obj
+        self._encode = encode
+        self._data: bytes | None = None
+        self.group = group
+        """Local subscriptions made with this ``group`` do not get the sample: their
+        owners were handed it directly by the publisher (knowledge replicas)."""
+
+    @property
+    def encoded(self) -> bool:
+        """Whether the bytes have been made."""
+        return self._data is not None
+
+    @property
+    def data(self) -> bytes:
+        data = self._data
+        if data is None:
+            data = self._data = self._encode(self.obj)
+        return data
+
+
 class Sample:
-    key: str
-    payload: bytes
-    remote: bool = False
-    """True when the sample came from another session (process)."""
-    prepared: Any = None
-    """What the subscription's ``prepare`` function made of the payload, when it has
-    run (on the transport thread, while the loop wakes up) and succeeded; else None."""
-    arrived: float = 0.0
-    """``time.monotonic()`` when the sample reached this process (0: unknown). Deadlines
-    of the handling (a causal read's wait) count from here, not from when a queued
-    sample's turn comes."""
+    """One sample as a subscriber sees it."""
+
+    __slots__ = ("_out", "_payload", "arrived", "key", "prepared", "remote")
+
+    def __init__(
+        self,
+        key: str,
+        payload: bytes | Outgoing,
+        remote: bool = False,
+        prepared: Any = None,
+        arrived: float = 0.0,
+    ) -> None:
+        self.key = key
+        if isinstance(payload, Outgoing):
+            self._out: Outgoing | None = payload
+            self._payload: bytes | None = None
+        else:
+            self._out = None
+            self._payload = payload
+        self.remote = remote
+        """True when the sample came from another session (process)."""
+        self.prepared = prepared
+        """What the subscription's ``prepare`` function made of the payload, when it
+        has run (on the transport thread, while the loop wakes up) and succeeded; else
+        None."""
+        self.arrived = arrived
+        """``time.monotonic()`` when the sample reached this process (0: unknown).
+        Deadlines of the handling (a causal read's wait) count from here, not from when
+        a queued sample's turn comes."""
+
+    @property
+    def payload(self) -> bytes:
+        """The encoded envelope (for a local sample made now if nobody needed it yet,
+        once for every subscriber)."""
+        data = self._payload
+        if data is None:
+            assert self._out is not None
+            data = self._payload = self._out.data
+        return data
+
+    @property
+    def obj(self) -> Any:
+        """For a sample published in this process: the sender's envelope object
+        (shared: never modify it); None for a sample that came as bytes."""
+        return self._out.obj if self._out is not None else None
+
+    @property
+    def size(self) -> int:
+        """The payload's length when it is bytes already; 0 for a local object not
+        encoded (it takes no buffer of its own: the sender holds it)."""
+        data = self._payload
+        return len(data) if data is not None else 0
+
+    def __repr__(self) -> str:
+        return f"Sample(key={self.key!r}, remote={self.remote}, size={self.size})"
 
 
 @dataclass(frozen=True, slots=True)
@@ -131,10 +204,18 @@ class Fabric(Protocol):
     ) -> None: ...
 
     async def publish(
-        self, key: str, payload: bytes, *, timeout: float | None = None, local: bool = True
+        self,
+        key: str,
+        payload: bytes | Outgoing,
+        *,
+        timeout: float | None = None,
+        local: bool = True,
     ) -> None:
         """Deliver ``payload`` on ``key``. Local FIFO inboxes with ``block`` make this
-        wait for room (at most ``timeout`` s). ``local=False``: other processes only."""
+        wait for room (at most ``timeout`` s). ``local=False``: other processes only.
+        An :class:`Outgoing` reaches local subscribers as the object itself
+        (``Sample.obj``) and is encoded once, only if a remote subscriber or a local
+        reader of ``Sample.payload`` needs the bytes."""
 
     def subscribe(
         self,
@@ -142,13 +223,15 @@ class Fabric(Protocol):
         policy: InboxPolicy | None = None,
         *,
         prepare: Prepare | None = None,
+        group: object = None,
     ) -> Subscription:
         """Subscribe with a bounded inbox. ``prepare(payload)`` (a pure function such as
         a msgspec decoder) is applied to each sample before the consumer sees it and
         the result put in ``Sample.prepared``; for samples from other processes it runs
         on the transport thread after the hand-off, overlapping the loop's wake-up. A
         consumer must accept ``prepared is None`` (not run yet, or it raised) and do the
-        work itself."""
+        work itself. ``group``: local publishes of an :class:`Outgoing` of the same
+        group skip this subscription (its owner got them from the publisher directly)."""
 
     def has_subscribers(self, key: str, *, remote_only: bool = False) -> bool:
         """Whether a subscriber here or elsewhere (``remote_only``: elsewhere) matches

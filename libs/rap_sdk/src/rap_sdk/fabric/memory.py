@@ -26,7 +26,15 @@ from ._local import (
     answer,
     liveliness_stream,
 )
-from ._types import LivelinessChange, Prepare, QueryHandler, QueryRequest, Reply, Sample
+from ._types import (
+    LivelinessChange,
+    Outgoing,
+    Prepare,
+    QueryHandler,
+    QueryRequest,
+    Reply,
+    Sample,
+)
 
 __all__ = ["MemoryBus", "MemoryFabric"]
 
@@ -135,7 +143,12 @@ class MemoryFabric:
         await self._life.close(et, ev, tb)
 
     async def publish(
-        self, key: str, payload: bytes, *, timeout: float | None = None, local: bool = True
+        self,
+        key: str,
+        payload: bytes | Outgoing,
+        *,
+        timeout: float | None = None,
+        local: bool = True,
     ) -> None:
         self._life.check_open()
         if key not in self._published:
@@ -153,7 +166,9 @@ class MemoryFabric:
             if member is self:
                 continue
             for sub in member._router.matching(key):
-                sub.inbox.offer(sub.sample(key, payload, True))
+                # another "process": it gets bytes, as it would over a network
+                data = payload.data if isinstance(payload, Outgoing) else payload
+                sub.inbox.offer(sub.sample(key, data, True))
         if late is not None:
             raise late
 
@@ -164,7 +179,12 @@ class MemoryFabric:
         )
 
     def subscribe(
-        self, key_expr: str, policy: InboxPolicy | None = None, *, prepare: Prepare | None = None
+        self,
+        key_expr: str,
+        policy: InboxPolicy | None = None,
+        *,
+        prepare: Prepare | None = None,
+        group: object = None,
     ) -> LocalSubscription:
         self._life.check_open()
         validate(key_expr)
@@ -173,7 +193,7 @@ class MemoryFabric:
             assert isinstance(s, LocalSubscription)
             self._router.remove(s)
 
-        sub = LocalSubscription(key_expr, policy or DEFAULT_POLICY, closed, prepare)
+        sub = LocalSubscription(key_expr, policy or DEFAULT_POLICY, closed, prepare, group)
         self._router.add(sub)
         self.bus.notify()
         return sub

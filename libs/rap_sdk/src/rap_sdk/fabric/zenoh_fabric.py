@@ -49,6 +49,7 @@ from ._local import (
 from ._types import (
     FabricStats,
     LivelinessChange,
+    Outgoing,
     Prepare,
     QueryHandler,
     QueryRequest,
@@ -300,7 +301,12 @@ class ZenohFabric:
     # -- pub/sub -----------------------------------------------------------------------
 
     async def publish(
-        self, key: str, payload: bytes, *, timeout: float | None = None, local: bool = True
+        self,
+        key: str,
+        payload: bytes | Outgoing,
+        *,
+        timeout: float | None = None,
+        local: bool = True,
     ) -> None:
         self._life.check_open()
         cell = self._pubs.get(key) or self._declare_publisher(key)  # validates the key
@@ -311,7 +317,7 @@ class ZenohFabric:
         # sending it samples: skipping the put before then loses nothing Zenoh delivers.
         if cell.matching:
             try:
-                cell.pub.put(payload)
+                cell.pub.put(payload.data if isinstance(payload, Outgoing) else payload)
             except zenoh.ZError as exc:
                 raise FabricError(f"publish on {key!r} failed: {exc}") from None
         if late is not None:
@@ -355,7 +361,12 @@ class ZenohFabric:
         return (self._pubs.get(key) or self._declare_publisher(key)).matching
 
     def subscribe(
-        self, key_expr: str, policy: InboxPolicy | None = None, *, prepare: Prepare | None = None
+        self,
+        key_expr: str,
+        policy: InboxPolicy | None = None,
+        *,
+        prepare: Prepare | None = None,
+        group: object = None,
     ) -> LocalSubscription:
         self._life.check_open()
         validate(key_expr)
@@ -367,7 +378,7 @@ class ZenohFabric:
                 with contextlib.suppress(zenoh.ZError):
                     s.remote_handle.undeclare()  # type: ignore[attr-defined]
 
-        sub = LocalSubscription(key_expr, policy or DEFAULT_POLICY, closed, prepare)
+        sub = LocalSubscription(key_expr, policy or DEFAULT_POLICY, closed, prepare, group)
         deliver = sub.inbox.offer
         push = self._push
 
