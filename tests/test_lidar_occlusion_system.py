@@ -12,7 +12,7 @@ from knowledge.config import KnowledgeConfig
 from lidar_occlusion.demo import default_plan_path, run_demo
 from lidar_occlusion.nodes import build
 from lidar_occlusion.scans import occluded_scan
-from rap_schemas import KnowledgeAccess, keys
+from rap_schemas import keys
 from rap_sdk import run_nodes
 from rap_sdk.testing import DelayedKnowledgeWrites, Harness
 from sim_world.world import default_world_path, load_world
@@ -35,23 +35,17 @@ async def test_with_slow_knowledge_writes_no_handler_reads_older_than_promised()
                 for i in range(6):  # clear again: the occlusion fades out of the window
                     await h.publish("tb1/scan", scan(None))
                     await h.wait_for(
-                        lambda r, i=i: (
-                            len([t for t in h.traces("analysis") if t.phase == "end"]) >= i + 2
-                        )
+                        lambda r, i=i: len([t for t in h.traces("analysis") if t.ended]) >= i + 2
                     )
                 await h.wait_for(lambda r: len(h.of(keys.Kind.DATA, "tb1/spin_config")) == 2)
             tg.cancel_scope.cancel()
-        access = [
-            r.decode(KnowledgeAccess)
-            for r in h.of(keys.Kind.TRACE)
-            if r.envelope is not None and r.envelope.type == KnowledgeAccess.TYPE
-        ]
+        access = [(t.node, t.cycle, a) for t in h.traces() for a in t.access]
         # what an upstream stage wrote in the cycle before emitting is promised downstream
-        writes = {(a.cycle, a.key): a for a in access if a.op == "write"}
+        writes = {(cycle, a.key): (node, a) for node, cycle, a in access if a.op == "write"}
         checked = 0
-        for a in access:
-            w = writes.get((a.cycle, a.key))
-            if a.op == "read" and w is not None and w.node != a.node and w.ts < a.ts:
+        for node, cycle, a in access:
+            wnode, w = writes.get((cycle, a.key), ("", None))
+            if a.op == "read" and w is not None and wnode != node and w.ts < a.ts:
                 assert a.version >= w.version, a  # never older than the promise
                 checked += 1
         assert checked >= 8  # laser_scan in every cycle, lidar_mask in the planned ones

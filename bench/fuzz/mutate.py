@@ -116,7 +116,7 @@ _WIRE_TYPES: Final = (
     "rap.PlanProposal/1",
     "rap.Verdict/1",
     "rap.KbRecord/1",
-    "rap.StageTrace/1",
+    "rap.StageTrace/2",
     "rap.KnowledgeAccess/1",
     "rap.TrustOutput/1",
     "rap.TrustSpecUpdate/1",

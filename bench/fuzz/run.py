@@ -400,10 +400,9 @@ async def _close_loop(
                     trail[sample.key.removeprefix(prefix)] += 1
                     if env.type == StageTrace.TYPE:
                         rec = msgspec.msgpack.decode(env.body, type=StageTrace)
-                        if rec.phase == "end" and not rec.ok:
+                        if rec.ended and not rec.ok:
                             errors[f"{rec.node}: {reason_kind(rec.error)}"] += 1
-                    elif env.type == KnowledgeAccess.TYPE:
-                        acc = msgspec.msgpack.decode(env.body, type=KnowledgeAccess)
+                    for acc in _accesses(env):
                         # how far ahead of now the version read was (a version from the
                         # future shadows every genuine write until the clock gets there)
                         ahead = (acc.version >> 20) / 1000 + EPOCH_S - time.time()
@@ -451,6 +450,22 @@ async def _close_loop(
     return result
 
 
+def _accesses(env: Any) -> list[KnowledgeAccess]:
+    """The knowledge accesses a trace record tells of: those a ``StageTrace`` lists, or
+    a ``KnowledgeAccess`` record itself."""
+    if env.type == KnowledgeAccess.TYPE:
+        return [msgspec.msgpack.decode(env.body, type=KnowledgeAccess)]
+    if env.type != StageTrace.TYPE:
+        return []
+    rec = msgspec.msgpack.decode(env.body, type=StageTrace)
+    return [
+        KnowledgeAccess(
+            node=rec.node, op=a.op, key=a.key, version=a.version, ts=a.ts, cycle=rec.cycle
+        )
+        for a in rec.access
+    ]
+
+
 async def _warm_up(
     fabric: ZenohFabric, system: str, robot: str, checkers: list[Proc]
 ) -> tuple[dict[str, Any], list[KnowledgeAccess], dict[str, bytes]]:
@@ -472,9 +487,7 @@ async def _warm_up(
         async def read_traces() -> None:
             async for s in traces:
                 try:
-                    env = _open_trace(s.payload)
-                    if env.type == KnowledgeAccess.TYPE:
-                        access.append(msgspec.msgpack.decode(env.body, type=KnowledgeAccess))
+                    access.extend(_accesses(_open_trace(s.payload)))
                 except DECODE_ERRORS:
                     continue
 

@@ -47,7 +47,7 @@ async def test_an_occlusion_is_detected_planned_approved_and_sent_to_the_robot()
         assert plan_rec.envelope is not None
         assert plan_rec.envelope.cycle == env.uid
         # stage order by causality: each handler was triggered by what the previous one sent
-        starts = [t for t in h.traces() if t.phase == "start" and t.cycle == env.uid]
+        starts = [t for t in h.traces() if t.started and t.cycle == env.uid]
         stages = [t.stage.value if t.stage else "" for t in starts]
         assert stages == ["monitor", "analyse", "plan", "legitimate", "execute"]
         sent = {r.envelope.uid: r for r in h.records if r.envelope is not None}
@@ -58,7 +58,7 @@ async def test_an_occlusion_is_detected_planned_approved_and_sent_to_the_robot()
         assert loop.gate.stats.approved == 1
         # the anomaly is being handled no more, and the same occlusion raises nothing new
         await h.publish("tb1/scan", scan(-0.4, 0.8))
-        await h.wait_for(lambda r: len([t for t in h.traces("analysis") if t.phase == "end"]) == 2)
+        await h.wait_for(lambda r: len([t for t in h.traces("analysis") if t.ended]) == 2)
         assert len(h.of(keys.Kind.EVENT, "anomaly")) == 1
 
 
@@ -72,8 +72,8 @@ async def test_a_rejecting_legitimate_stops_every_plan_before_the_robot() -> Non
         await h.wait_for(lambda r: len(h.of(keys.Kind.EVENT, "plan-rejected")) == 2)
         await h.wait_for(
             lambda r: (
-                any(t.phase == "end" and t.node == "planner" for t in h.traces())
-                and len([t for t in h.traces("planner") if t.phase == "end"]) == 3
+                any(t.ended and t.node == "planner" for t in h.traces())
+                and len([t for t in h.traces("planner") if t.ended]) == 3
             )
         )
         assert not h.of(keys.Kind.DATA, "tb1/spin_config")
@@ -158,8 +158,8 @@ async def test_a_stage_killed_mid_cycle_takes_the_next_cycle_after_its_restart(
             await h.publish("tb1/scan", scan(-0.4, 0.8, stamp=i * period))
             await h.wait_for(
                 lambda r, i=i: (
-                    len([t for t in h.traces("monitor") if t.phase == "end"]) == i
-                    and len([t for t in h.traces("analysis") if t.phase == "end"]) == i
+                    len([t for t in h.traces("monitor") if t.ended]) == i
+                    and len([t for t in h.traces("analysis") if t.ended]) == i
                 )
             )
             if h.of(keys.Kind.DATA, "tb1/spin_config"):

@@ -93,7 +93,7 @@ async def test_the_tracker_follows_a_real_loop_on_the_fabric() -> None:
                 tracker.expect(env.uid, SCAN)
                 assert await tracker.wait(env.uid, 5.0)
                 # when it reports the cycle over, all four handler calls have ended
-                ends = [t for t in h.traces() if t.phase == "end" and t.cycle == env.uid]
+                ends = [t for t in h.traces() if t.ended and t.cycle == env.uid]
                 assert len(ends) == 4
             tg.cancel_scope.cancel()
         assert tracker.completed == 20

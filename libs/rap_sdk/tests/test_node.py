@@ -94,26 +94,26 @@ async def test_a_cycle_flows_with_cycle_and_cause(setup: dict[str, Any]) -> None
         assert anomaly.envelope.cause == new_data.uid
         assert anomaly.decode(LidarMask).occluded == [False, True]
         assert seen == [("monitor", 42), ("analyse", "monitor")]
-        # each end record is published after what its handler emitted
+        # one record per handler call, published before what its handler emitted
         for node in ("monitor", "analyse"):
             await h.wait_for(
                 lambda r, node=node: (
                     r.kind is keys.Kind.TRACE  # type: ignore[misc]
                     and r.name == node
-                    and r.decode(StageTrace).phase == "end"
+                    and r.decode(StageTrace).ended
                 )
             )
         mon, ana = h.traces("monitor"), h.traces("analyse")
         # per node in order; across nodes the order is causal (trigger uids), since
         # records from two senders may reach the harness in either order
-        assert [t.phase for t in mon] == ["start", "end"]
-        assert [t.phase for t in ana] == ["start", "end"]
+        assert [t.phase for t in mon] == ["call"]
+        assert [t.phase for t in ana] == ["call"]
         assert {t.cycle for t in mon + ana} == {sent.uid}
         assert {t.stage for t in mon} == {Stage.MONITOR}
         assert {t.stage for t in ana} == {Stage.ANALYSE}
         assert mon[0].trigger == sent.uid
         assert ana[0].trigger == new_data.uid
-        assert mon[0].ts <= new_data.ts <= mon[1].ts
+        assert mon[0].ts <= new_data.ts <= mon[0].ts + mon[0].duration_ns
         assert all(t.ok for t in mon + ana)
 
 
@@ -203,8 +203,8 @@ async def test_handler_failure_is_traced_and_does_not_stop_the_node() -> None:
         group = await h.start(node)
         await h.emit("go", scan(stamp=1))
         await h.emit("go", scan(stamp=2))
-        await h.wait_for(lambda r: r.kind is keys.Kind.TRACE and len(h.traces()) == 4)
-        ends = [t for t in h.traces() if t.phase == "end"]
+        await h.wait_for(lambda r: r.kind is keys.Kind.TRACE and len(h.traces()) == 2)
+        ends = [t for t in h.traces() if t.ended]
         assert [(t.ok, t.error) for t in ends] == [(False, "RuntimeError: planner bug"), (True, "")]
         assert calls == [1, 2]
         assert group["flaky"].stats.failed == 1
@@ -226,7 +226,7 @@ async def test_duplicates_reach_the_handler_once() -> None:
         for _ in range(3):
             await h.publish_raw(keys.event("t", "e"), payload)
         await h.emit("e")
-        await h.wait_for(lambda r: len([t for t in h.traces() if t.phase == "end"]) == 2)
+        await h.wait_for(lambda r: len([t for t in h.traces() if t.ended]) == 2)
         assert calls == 2
         assert group["n"].sender_stats.duplicates == 2
 
@@ -352,9 +352,7 @@ async def test_empty_event_body_decodes() -> None:
         await h.start(node)
         await h.emit("ping", Empty())
         await h.wait_for(lambda r: len(got) == 1 or r.kind is keys.Kind.LOG)
-        await h.wait_for(
-            lambda r: r.kind is keys.Kind.TRACE and r.decode(StageTrace).phase == "end"
-        )
+        await h.wait_for(lambda r: r.kind is keys.Kind.TRACE and r.decode(StageTrace).ended)
         assert got == [Empty()]
 
 

@@ -55,7 +55,7 @@ async def test_the_guard_is_live(blockbuster: BlockBuster) -> None:
     async with Harness(system="bb") as h:
         await h.start(n)
         await h.emit("go")
-        await h.wait_for(lambda r: any(t.phase == "end" for t in h.traces()))
-        (end,) = [t for t in h.traces() if t.phase == "end"]
+        await h.wait_for(lambda r: any(t.ended for t in h.traces()))
+        (end,) = [t for t in h.traces() if t.ended]
         assert not end.ok
         assert "BlockingError" in end.error

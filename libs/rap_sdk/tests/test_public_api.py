@@ -71,6 +71,7 @@ SCHEMAS = {
     "ModelPut",
     "Empty",
     "Envelope",
+    "Access",
     "KnowledgeAccess",
     "LaserScan",
     "LidarMask",

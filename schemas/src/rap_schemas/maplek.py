@@ -21,6 +21,7 @@ __all__ = [
     "NEW_PLAN",
     "PLAN_REJECTED",
     "VERDICT",
+    "Access",
     "Empty",
     "KnowledgeAccess",
     "PlanProposal",
@@ -89,32 +90,62 @@ class Stage(enum.StrEnum):
     EXECUTE = "execute"
 
 
-class StageTrace(Message, frozen=True, omit_defaults=True):
-    """A handler started or ended (``rap/<system>/trace/<node>``)."""
+class Access(msgspec.Struct, frozen=True, array_like=True):
+    """A knowledge read, write or delete of a handler call, in a :class:`StageTrace`."""
 
-    TYPE = "rap.StageTrace/1"
+    op: Literal["read", "write", "delete"]
+    key: str
+    version: int
+    """The version read (the newest known: 0 for none) or written."""
+    ts: int
+    """When, UTC ns."""
+
+
+class StageTrace(Message, frozen=True, omit_defaults=True):
+    """A handler call (``rap/<system>/trace/<node>``): one ``call`` record, published
+    when the handler returns and before what it sent; or, for a call that sent before
+    it returned (``ctx.flush()``), a ``start`` record before those sends and an ``end``
+    record after the call."""
+
+    TYPE = "rap.StageTrace/2"
 
     node: str
     handler: str
-    phase: Literal["start", "end"]
+    phase: Literal["start", "end", "call"]
     trigger: bytes
     """uid of the envelope that triggered the handler."""
     trigger_key: str
     cycle: bytes
     ts: int
+    """When the handler started (``call``, ``start``) or ended (``end``), UTC ns."""
     stage: Stage | None = None
     """None for a node that declares no MAPLE-K stage."""
     duration_ns: int = 0
-    """Handler run time; set on ``end``."""
+    """Handler run time; set on ``call`` and ``end``."""
     ok: bool = True
     error: str = ""
     sent: list[str] = msgspec.field(default_factory=list)
-    """On ``end``: the keys of what the handler emitted or published, in order (a
-    cycle tracker expects one handler call per subscriber of each)."""
+    """On ``call`` and ``end``: the keys of what the handler emitted or published, in
+    order (a cycle tracker expects one handler call per subscriber of each)."""
+    access: list[Access] = msgspec.field(default_factory=list)
+    """The handler's knowledge reads and writes, in order (on ``start``: those before
+    the flush; on ``end``: those after)."""
+
+    @property
+    def started(self) -> bool:
+        """The record tells that the handler started (``start`` or ``call``)."""
+        return self.phase != "end"
+
+    @property
+    def ended(self) -> bool:
+        """The record tells that the handler ended (``end`` or ``call``)."""
+        return self.phase != "start"
 
 
 class KnowledgeAccess(Message, frozen=True, omit_defaults=True):
-    """A knowledge read or write by a handler (``rap/<system>/trace/<node>``)."""
+    """A knowledge read or write by a handler, as a record of its own (the runtime now
+    lists them in its :class:`StageTrace`; checkers still take these from other
+    senders)."""
 
     TYPE = "rap.KnowledgeAccess/1"
 

@@ -110,7 +110,7 @@ async def test_ctx_carries_writes_and_reads_are_traced() -> None:
         events = reader.fabric.subscribe(keys.event("t", "new-data"))
         await feed(reader, range(1, 2), seen)
         import msgspec
-        from rap_schemas import Envelope, KnowledgeAccess
+        from rap_schemas import Envelope
 
         env = msgspec.msgpack.decode((await events.get()).payload, type=Envelope)
         assert list(env.ctx) == ["laser_scan"]
@@ -118,12 +118,11 @@ async def test_ctx_carries_writes_and_reads_are_traced() -> None:
         with anyio.fail_after(5):
             while len(access) < 2:
                 e = msgspec.msgpack.decode((await traces.get()).payload, type=Envelope)
-                if e.type == KnowledgeAccess.TYPE:
-                    access.append(msgspec.msgpack.decode(e.body, type=KnowledgeAccess))
-                else:
-                    assert e.type == StageTrace.TYPE
-        assert {(a.node, a.op) for a in access} == {("monitor", "write"), ("analyse", "read")}
-        assert {a.version for a in access} == {env.ctx["laser_scan"]}
+                assert e.type == StageTrace.TYPE
+                rec = msgspec.msgpack.decode(e.body, type=StageTrace)
+                access += [(rec.node, a) for a in rec.access]
+        assert {(node, a.op) for node, a in access} == {("monitor", "write"), ("analyse", "read")}
+        assert {a.version for _, a in access} == {env.ctx["laser_scan"]}
 
 
 # -- promises that never come: the damage is bounded -------------------------------------

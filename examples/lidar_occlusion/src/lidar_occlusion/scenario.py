@@ -132,9 +132,9 @@ class Observer:
             if env.type != StageTrace.TYPE:
                 continue
             rec = dec.decode(env.body)
-            if rec.phase == "end" and len(self.stages) < 100_000:
+            if rec.ended and len(self.stages) < 100_000:
                 self.stages.setdefault(rec.cycle, []).append(rec)
-            if self.rerun is not None and rec.phase == "end" and rec.stage is not None:
+            if self.rerun is not None and rec.ended and rec.stage is not None:
                 idx = self.by_cycle.get(rec.cycle, -1)
                 if idx >= 0:
                     self.rerun.rec.set_time("sim", duration=self.scans[idx].t)
@@ -221,7 +221,11 @@ def metrics(
     full = violations = 0
     order = ["monitor", "analyse", "plan", "legitimate", "execute"]
     for recs in obs.stages.values():
-        start = {r.stage.value: r.ts - r.duration_ns for r in recs if r.stage is not None}
+        start = {  # a call record is stamped at the start, an end record at the end
+            r.stage.value: r.ts if r.phase == "call" else r.ts - r.duration_ns
+            for r in recs
+            if r.stage is not None
+        }
         if all(st in start for st in order):
             full += 1  # one host, one clock: each stage started after the one before
             violations += [start[st] for st in order] != sorted(start[st] for st in order)

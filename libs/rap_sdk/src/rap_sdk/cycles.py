@@ -1,7 +1,7 @@
 """Knowing when a loop cycle is over, from the trace records alone.
 
 A cycle starts with a root message (a scan, say). Every handler that runs in the cycle
-publishes an ``end`` record naming its trigger's key and listing the keys it sent on;
+publishes a ``call`` (or ``end``) record naming its trigger's key and listing the keys it sent on;
 each of those keys is handled once per subscribed route of the loop's nodes. So a cycle
 is over when, for every key, as many handler calls triggered on it have ended as its
 messages promised (per key, so that records arriving out of order between nodes can
@@ -114,7 +114,7 @@ class CycleTracker:
 
     def observe(self, rec: StageTrace) -> None:
         """Account for one trace record."""
-        if rec.phase != "end" or rec.node not in self.topology.nodes:
+        if rec.phase == "start" or rec.node not in self.topology.nodes:
             return
         st = self._get(rec.cycle)
         st.ended += 1
@@ -163,7 +163,7 @@ class CycleTracker:
                 try:
                     env = _decode_trace(sample.payload)
                     if env.type != StageTrace.TYPE:
-                        continue  # a KnowledgeAccess record
+                        continue  # another record (a KnowledgeAccess from elsewhere)
                     self.observe(_trace_body(env.body))
                 except (msgspec.ValidationError, msgspec.DecodeError) as exc:
                     log.warning("tracker: bad trace record on %s: %s", sample.key, exc)

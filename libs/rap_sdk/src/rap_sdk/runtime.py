@@ -1,12 +1,14 @@
 """Running nodes on a fabric: inboxes, typed dispatch, tracing, rejections, shutdown.
 
 Each route of a node gets its own subscription with its own bounded inbox and a consumer
-task; a node's handlers run one at a time (a node's state needs no locks). Around every
-handler call the runtime publishes :class:`~rap_schemas.StageTrace` start/end records
-carrying the ``cycle`` (except around handlers of trust-checker outputs, which run
-outside the MAPLE-K cycle). A sample that cannot be accepted is counted, logged (rate
-limited) and published as a :class:`~rap_schemas.Rejection` on ``rap/<system>/log/<node>``;
-it never stops the node.
+task; a node's handlers run one at a time (a node's state needs no locks). What a
+handler emits or publishes leaves when it returns, in order (``ctx.flush()`` sends it
+earlier). For every handler call, when someone subscribes to the node's trace key, the
+runtime publishes one :class:`~rap_schemas.StageTrace` record (start, end, knowledge
+reads and writes, what it sent) before what the call sent, carrying the ``cycle``
+(except for handlers of trust-checker outputs, which run outside the MAPLE-K cycle). A
+sample that cannot be accepted is counted, logged (rate limited) and published as a
+:class:`~rap_schemas.Rejection` on ``rap/<system>/log/<node>``; it never stops the node.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from typing import Any
 
 import anyio
 from anyio.abc import TaskStatus
-from rap_schemas import KnowledgeAccess, Message, Rejection, StageTrace, keys
+from rap_schemas import Access, Message, Rejection, StageTrace, keys
 
 from .envelope import (
     Clock,
@@ -34,7 +36,7 @@ from .envelope import (
     TypedEnvelope,
 )
 from .errors import BackpressureTimeout, LifecycleError, RapError, RejectedSample
-from .fabric import Fabric, Sample, Subscription
+from .fabric import Fabric, Outgoing, Sample, Subscription
 from .knowledge import _MISSING, KnowledgeClient
 from .node import Node, Route
 from .rejections import Rejections, Throttle
@@ -82,13 +84,19 @@ class Context:
 
     __slots__ = (
         "_kb",
+        "_out",
+        "_route",
         "_rt",
+        "_split",
+        "_starting",
+        "access",
         "cycle",
         "deadline",
         "envelope",
         "key",
         "message",
         "sent",
+        "started",
         "written",
     )
 
@@ -111,8 +119,20 @@ class Context:
         self.written: dict[str, int] | None = None
         """Knowledge versions this handler wrote: carried in what it emits."""
         self.sent: list[str] | None = None
-        """Keys this handler emitted or published on, in order (for the end record)."""
+        """Keys this handler emitted or published on, in order (for the trace record)."""
         self._kb: ContextKnowledge | None = None
+        self._out: list[tuple[str, Outgoing]] | None = None
+        """What the handler sent and has not left yet (it leaves when the handler
+        returns, or at ``flush()``)."""
+        self._route: Route | None = None
+        self._split = False
+        """A ``start`` record went out (the handler waited, or flushed): the call ends
+        with an ``end`` record."""
+        self._starting: asyncio.Task[None] | None = None
+        self.access: list[Access] | None = None
+        """The handler's knowledge accesses, when the call is traced (else None)."""
+        self.started = 0
+        """When the handler started, UTC ns (when traced)."""
 
     @property
     def kb(self) -> ContextKnowledge:
@@ -151,22 +171,37 @@ class Context:
             self.sent.append(key)
 
     async def emit(self, name: str, message: Message | None = None) -> OutgoingEnvelope:
-        """Emit event ``name`` in this cycle, caused by the triggering envelope."""
+        """Emit event ``name`` in this cycle, caused by the triggering envelope. It is
+        sealed now (with the knowledge versions written so far) and leaves when the
+        handler returns (or at :meth:`flush`)."""
         rt = self._rt
         key = rt.event_keys.get(name) or rt.build_key(keys.event, name, rt.event_keys)
-        self._sent(key)
-        return await rt.send(
-            key, message, cycle=self.cycle, cause=self.envelope.uid, ctx=self._ctx_out()
-        )
+        return self._queue(key, message)
 
     async def publish(self, topic: str, message: Message) -> OutgoingEnvelope:
-        """Publish on data topic ``topic`` in this cycle."""
+        """Publish on data topic ``topic`` in this cycle; it leaves as :meth:`emit`'s
+        messages do."""
         rt = self._rt
         key = rt.data_keys.get(topic) or rt.build_key(keys.data, topic, rt.data_keys)
+        return self._queue(key, message)
+
+    def _queue(self, key: str, message: Message | None) -> OutgoingEnvelope:
         self._sent(key)
-        return await rt.send(
+        out = self._rt.sealer.seal_out(
             key, message, cycle=self.cycle, cause=self.envelope.uid, ctx=self._ctx_out()
         )
+        if self._out is None:
+            self._out = [(key, out)]
+        else:
+            self._out.append((key, out))
+        return out.obj  # type: ignore[no-any-return]
+
+    async def flush(self) -> None:
+        """Send now what this handler emitted or published so far, instead of when it
+        returns: for a handler that streams commands, or waits for an answer to what it
+        sent. A traced call is then recorded as a ``start`` record (before these
+        sends) and an ``end`` record (when it returns)."""
+        await self._rt._flush(self)
 
 
 class ContextKnowledge:
@@ -177,8 +212,8 @@ class ContextKnowledge:
     arrived, then asks the service, else raises ``KnowledgeError`` naming key and
     versions; a version whose writer is not alive is not waited for). Writes are
     remembered and carried, with what the trigger carried, in the ``ctx`` of what this
-    handler emits. Each read and write is traced
-    as a ``KnowledgeAccess`` record when someone subscribes to the node's trace key."""
+    handler emits. Each read and write is listed in
+    the call's trace record when someone subscribes to the node's trace key."""
 
     __slots__ = ("_ctx",)
 
@@ -204,7 +239,10 @@ class ContextKnowledge:
         value = await self.client.read(
             key, type, min_version=ctx.envelope.ctx.get(key, 0), timeout=timeout, **kw
         )
-        await ctx._rt.trace_access("read", key, self.client.known_version(key), ctx.cycle)
+        if ctx.access is not None:
+            ctx.access.append(
+                Access("read", key, self.client.known_version(key), ctx._rt.clock.time_ns())
+            )
         return value
 
     def _after_trigger(self) -> None:
@@ -224,7 +262,8 @@ class ContextKnowledge:
         if ctx.written is None:
             ctx.written = {}
         ctx.written[key] = version
-        await ctx._rt.trace_access("write", key, version, ctx.cycle)
+        if ctx.access is not None:
+            ctx.access.append(Access("write", key, version, ctx._rt.clock.time_ns()))
         return version
 
     async def delete(self, key: str, *, durable: bool = False, expect: int | None = None) -> int:
@@ -234,7 +273,8 @@ class ContextKnowledge:
         if ctx.written is None:
             ctx.written = {}
         ctx.written[key] = version
-        await ctx._rt.trace_access("delete", key, version, ctx.cycle)
+        if ctx.access is not None:
+            ctx.access.append(Access("delete", key, version, ctx._rt.clock.time_ns()))
         return version
 
 
@@ -274,6 +314,7 @@ class NodeRuntime:
         self._stopping: anyio.Event | None = None
         self._stop_requested = False
         self._knowledge: KnowledgeClient | None = None
+        self._loop: asyncio.AbstractEventLoop = None  # type: ignore[assignment]  # run()
         self.event_keys: dict[str, str] = {}
         self.data_keys: dict[str, str] = {}
         self._state = "new"
@@ -312,6 +353,10 @@ class NodeRuntime:
         local node whose FIFO inbox stays full for ``SEND_TIMEOUT`` s does not get it
         (counted in ``stats.send_timeouts``, logged); everyone else does."""
         out = self.sealer.seal_out(key, message, cycle=cycle, cause=cause, ctx=ctx)
+        await self._send_out(key, out)
+        return out.obj  # type: ignore[no-any-return]
+
+    async def _send_out(self, key: str, out: Outgoing) -> None:
         try:
             await self.fabric.publish(key, out, timeout=SEND_TIMEOUT)
         except BackpressureTimeout:
@@ -326,50 +371,65 @@ class NodeRuntime:
                     self.stats.send_timeouts,
                 )
         self.stats.sent += 1
-        return out.obj  # type: ignore[no-any-return]
+
+    async def _flush(self, ctx: Context) -> None:
+        """Send what ``ctx``'s handler queued; a traced call gets its ``start`` record
+        first (once)."""
+        if ctx.access is not None and ctx._route is not None:
+            if not ctx._split:
+                ctx._split = True
+                access, ctx.access = ctx.access, []
+                await self._trace(ctx._route, "start", ctx, ctx.started, access=access)
+            elif ctx._starting is not None:
+                await ctx._starting
+        await self._send_queued(ctx)
+
+    def _waited(self, ctx: Context) -> None:
+        """The handler of a traced call gave the event loop a turn (it waits for
+        something): its ``start`` record goes out now, so that a checker sees it
+        started while it waits (two executions overlapping, a stage stuck)."""
+        if ctx._split or ctx._route is None or ctx.access is None:
+            return
+        ctx._split = True
+        access, ctx.access = ctx.access, []
+        ctx._starting = asyncio.get_running_loop().create_task(
+            self._trace(ctx._route, "start", ctx, ctx.started, access=access)
+        )
+
+    async def _send_queued(self, ctx: Context) -> None:
+        out, ctx._out = ctx._out, None
+        if out:
+            for key, o in out:
+                await self._send_out(key, o)
 
     async def _trace(
         self,
         route: Route,
         phase: str,
-        key: str,
-        env: TypedEnvelope[Any],
-        cycle: bytes,
+        ctx: Context,
         ts: int,
         duration: int = 0,
         error: str = "",
-        sent: list[str] | None = None,
+        access: list[Access] | None = None,
     ) -> None:
+        env = ctx.envelope
         rec = StageTrace(
             node=self.node.name,
             stage=self.node.stage,
             handler=route.handler_name,
             phase=phase,  # type: ignore[arg-type]
             trigger=env.uid,
-            trigger_key=key,
-            cycle=cycle,
+            trigger_key=ctx.key,
+            cycle=ctx.cycle,
             ts=ts,
             duration_ns=duration,
             ok=not error,
             error=error,
-            sent=sent or [],
+            sent=(ctx.sent or []) if phase != "start" else [],
+            access=access or [],
         )
-        payload, _ = self.sealer.seal_message(self._trace_key, rec, cycle=cycle, cause=env.uid)
-        await self._publish_record(self._trace_key, payload)
-
-    async def trace_access(self, op: str, key: str, version: int, cycle: bytes) -> None:
-        """A ``KnowledgeAccess`` record, when someone subscribes to the trace key."""
-        if self.trace and self.fabric.has_subscribers(self._trace_key):
-            rec = KnowledgeAccess(
-                node=self.node.name,
-                op=op,  # type: ignore[arg-type]
-                key=key,
-                version=version,
-                ts=self.clock.time_ns(),
-                cycle=cycle,
-            )
-            payload, _ = self.sealer.seal_message(self._trace_key, rec, cycle=cycle)
-            await self._publish_record(self._trace_key, payload)
+        out = self.sealer.seal_out(self._trace_key, rec, cycle=ctx.cycle, cause=env.uid)
+        await self._publish_record(self._trace_key, out)
 
     @property
     def knowledge(self) -> KnowledgeClient:
@@ -380,7 +440,7 @@ class NodeRuntime:
             )
         return self._knowledge
 
-    async def _publish_record(self, key: str, payload: bytes) -> None:
+    async def _publish_record(self, key: str, payload: bytes | Outgoing) -> None:
         """Publish a trace or rejection record. A record that cannot go out (fabric
         closing or failing, a subscriber's inbox full past the deadline) is counted in
         ``stats.records_lost`` and logged; it never stops the node nor hangs shutdown."""
@@ -458,13 +518,17 @@ class NodeRuntime:
                 await self._call(route, ctx)
 
     async def _call(self, route: Route, ctx: Context) -> None:
-        clock, env, cycle = self.clock, ctx.envelope, ctx.cycle
-        # records nobody subscribes to are not built (decided once per call: pairs stay whole)
+        clock = self.clock
+        # records nobody subscribes to are not built (decided once per call)
         traced = self.trace and route.traced and self.fabric.has_subscribers(self._trace_key)
         start = 0
+        waited = None
         if traced:
-            start = clock.time_ns()
-            await self._trace(route, "start", ctx.key, env, cycle, start)
+            start = ctx.started = clock.time_ns()
+            ctx.access = []
+            ctx._route = route
+            # runs only if the handler gives the loop a turn before it returns
+            waited = self._loop.call_soon(self._waited, ctx)
         error = ""
         try:
             if route.takes_message:
@@ -489,9 +553,18 @@ class NodeRuntime:
                 )
         else:
             self.stats.handled += 1
+        if waited is not None:
+            waited.cancel()
         if traced:
             end = clock.time_ns()
-            await self._trace(route, "end", ctx.key, env, cycle, end, end - start, error, ctx.sent)
+            if ctx._starting is not None:
+                await ctx._starting
+            if ctx._split:
+                await self._trace(route, "end", ctx, end, end - start, error, ctx.access)
+            else:
+                await self._trace(route, "call", ctx, start, end - start, error, ctx.access)
+        if ctx._out:  # what it sent before it failed goes out too, as it was sent
+            await self._send_queued(ctx)
 
     # -- lifecycle ---------------------------------------------------------------------
 
@@ -503,6 +576,7 @@ class NodeRuntime:
                 f"node {self.node.name!r} runtime is {self._state}; a runtime runs once"
             )
         self._state = "running"
+        self._loop = asyncio.get_running_loop()
         self._stopping = anyio.Event()
         if self._stop_requested:
             self._stopping.set()

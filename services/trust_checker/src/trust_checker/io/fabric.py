@@ -1,13 +1,16 @@
 """The checker on the RAP fabric (Zenoh, or the in-memory fabric in tests).
 
 Inputs, by default (``FabricConfig.default_inputs``), are a system's trace records and
-events. Each message is one tick (under the ``message`` policy) setting these streams;
-a message that sets none of the running spec's inputs is not a tick:
+events. Each event is one tick (under the ``message`` policy); a ``rap.StageTrace``
+record of a handler call is several, in this order: the handler's start (records of
+phase ``call`` or ``start``), one tick per knowledge access it lists (as a
+``rap.KnowledgeAccess`` record would be), its end (``call`` or ``end``). A tick that
+sets none of the running spec's inputs is not a tick. The streams each sets:
 
 =====================================  ====================  ==========================
 message                                stream                value
 =====================================  ====================  ==========================
-``rap.StageTrace`` on                  ``stage``             the stage (Str); ``""`` for
+``rap.StageTrace`` (start, end) on     ``stage``             the stage (Str); ``""`` for
 ``rap/<system>/trace/<node>``                                a node that declares none
                                        ``phase``             ``"start"`` or ``"end"``
                                        ``node``              the node id (Str)
@@ -23,8 +26,10 @@ message                                stream                value
                                        ``<stage>_<phase>``   the cycle id, hex, e.g.
                                                              ``analyse_start`` (only
                                                              for a node with a stage)
-``rap.KnowledgeAccess`` on             ``kb_op``             ``read``, ``write``,
-``rap/<system>/trace/<node>``                                ``delete``
+a knowledge access listed in a        ``kb_op``             ``read``, ``write``,
+``rap.StageTrace``, or a                                     ``delete``
+``rap.KnowledgeAccess`` on
+``rap/<system>/trace/<node>``
                                        ``kb_key``            the knowledge key (Str)
                                        ``kb_node``           the node id (Str)
                                        ``kb_cycle``          the cycle id, hex; ``""``
@@ -131,7 +136,7 @@ __all__ = [
     "SWAP_TIMEOUT",
     "FabricTransport",
     "FabricTransportStats",
-    "default_values",
+    "default_ticks",
     "event_stream_name",
 ]
 
@@ -183,45 +188,63 @@ def _is_data(key: str) -> bool:
     return len(parts) == 4 and parts[0] == keys.ROOT and parts[2] == keys.Kind.DATA.value
 
 
-def default_values(
+def default_ticks(
     kind: keys.Kind, name: str, env: TypedEnvelope[msgspec.Raw]
-) -> dict[str, object]:
-    """The streams a trace record or an event sets (the table in the module docstring).
-    Raises one of ``rap_schemas.limits.DECODE_ERRORS`` for a body that is not what its
-    envelope says (wrong fields, undecodable, nested too deeply, not UTF-8)."""
-    out: dict[str, object] = {}
+) -> list[dict[str, object]]:
+    """The ticks a trace record or an event makes, each with the streams it sets (the
+    table in the module docstring): one for an event or a ``KnowledgeAccess`` record;
+    for a ``StageTrace`` the handler's start (``call``, ``start``), then each knowledge
+    access it lists, then its end (``call``, ``end``). Raises one of
+    ``rap_schemas.limits.DECODE_ERRORS`` for a body that is not what its envelope says
+    (wrong fields, undecodable, nested too deeply, not UTF-8)."""
     if kind is keys.Kind.TRACE:
         if env.type == StageTrace.TYPE:
-            rec = _trace_body(env.body)
-            cycle = rec.cycle.hex()
-            out.update(
-                stage="" if rec.stage is None else str(rec.stage),
-                phase=rec.phase,
-                node=rec.node,
-                handler=rec.handler,
-                cycle=cycle,
-                ok=rec.ok,
-                acted=rec.phase == "end" and any(_is_data(k) for k in rec.sent),
-            )
-            if rec.stage is not None:
-                out[f"{rec.stage}_{rec.phase}"] = cycle
-        elif env.type == KnowledgeAccess.TYPE:
+            return _stage_ticks(_trace_body(env.body))
+        if env.type == KnowledgeAccess.TYPE:
             acc = _access_body(env.body)
-            out.update(
-                kb_op=acc.op,
-                kb_key=acc.key,
-                kb_node=acc.node,
-                kb_cycle="" if acc.cycle is None else acc.cycle.hex(),
-            )
-            out[f"kb_{acc.op}"] = acc.key
-    elif kind is keys.Kind.EVENT:
+            cycle = "" if acc.cycle is None else acc.cycle.hex()
+            return [_access_tick(acc.op, acc.key, acc.node, cycle)]
+        return []
+    if kind is keys.Kind.EVENT:
         cycle = (env.cycle if env.cycle is not None else env.uid).hex()
-        out.update(event=name, ev_cycle=cycle)
+        out: dict[str, object] = {"event": name, "ev_cycle": cycle}
         out[event_stream_name(name)] = cycle
         if env.type == Verdict.TYPE:
             verdict = _verdict_body(env.body)
             out.update(verdict_approved=verdict.approved, verdict_plan=verdict.plan_uid.hex())
-    return out
+        return [out]
+    return []
+
+
+def _stage_ticks(rec: StageTrace) -> list[dict[str, object]]:
+    cycle = rec.cycle.hex()
+    stage = "" if rec.stage is None else str(rec.stage)
+    ticks: list[dict[str, object]] = []
+
+    def tick(phase: str, ok: bool, acted: bool) -> None:
+        out: dict[str, object] = {
+            "stage": stage,
+            "phase": phase,
+            "node": rec.node,
+            "handler": rec.handler,
+            "cycle": cycle,
+            "ok": ok,
+            "acted": acted,
+        }
+        if rec.stage is not None:
+            out[f"{rec.stage}_{phase}"] = cycle
+        ticks.append(out)
+
+    if rec.phase != "end":
+        tick("start", True, False)
+    ticks.extend(_access_tick(a.op, a.key, rec.node, cycle) for a in rec.access)
+    if rec.phase != "start":
+        tick("end", rec.ok, any(_is_data(k) for k in rec.sent))
+    return ticks
+
+
+def _access_tick(op: str, key: str, node: str, cycle: str) -> dict[str, object]:
+    return {"kb_op": op, "kb_key": key, "kb_node": node, "kb_cycle": cycle, f"kb_{op}": key}
 
 
 @dataclass(frozen=True, slots=True)
@@ -373,9 +396,7 @@ class FabricTransport:
             sample: Sample | None = first
             n = 0
             while sample is not None:
-                arrival = self._arrival(sample)
-                if arrival is not None:
-                    arrivals.append(arrival)
+                self._arrivals(sample, arrivals)
                 n += 1
                 sample = sub.get_nowait() if n < MAX_BATCH else None
             self._gaps(sub)
@@ -433,11 +454,13 @@ class FabricTransport:
 
     # -- input -----------------------------------------------------------------------
 
-    def _arrival(self, sample: Sample) -> Arrival | None:
+    def _arrivals(self, sample: Sample, into: list[Arrival]) -> None:
+        """The ticks of one sample, added to ``into`` (none for a sample refused or
+        of a key no input reads)."""
         key = sample.key
         route = self._route(key)
         if route.kind is None and not route.explicit:
-            return None  # a key no input reads (data, knowledge, logs, our own outputs)
+            return  # a key no input reads (data, knowledge, logs, our own outputs)
         self.stats.samples += 1
         size = len(sample.payload)
         if size > MAX_SAMPLE_BYTES:
@@ -446,35 +469,43 @@ class FabricTransport:
                 f"sample of {size} bytes is over the limit of {MAX_SAMPLE_BYTES} - send "
                 "smaller messages",
             )
-            return None
+            return
         try:
             env = self._opener.open(key, sample.payload)
         except RejectedSample as exc:
             self._reject(key, exc.reason, source=exc.source, type_=exc.type)
-            return None
+            return
         if env is None:
             self.stats.duplicates += 1
-            return None
+            return
         try:
-            values = self._values(route, env)
+            ticks = self._ticks(route, env)
         except DecodeRejected as exc:
             self._reject(key, f"{env.type} {exc.reason}", source=env.source, type_=env.type)
-            return None
+            return
         except DECODE_ERRORS as exc:
             reason = f"invalid {env.type} body: {decode_failure(exc)}"
             self._reject(key, reason, source=env.source, type_=env.type)
-            return None
+            return
         except ValueError_ as exc:
             self._reject(key, f"{env.type}: {exc}", source=env.source, type_=env.type)
-            return None
-        if not values:
-            return None
-        return Arrival(values, self.session.clock.time_ns(), key)
+            return
+        if ticks:
+            now = self.session.clock.time_ns()
+            into.extend(Arrival(values, now, key) for values in ticks)
 
-    def _values(self, route: _Route, env: TypedEnvelope[msgspec.Raw]) -> dict[str, object]:
+    def _ticks(self, route: _Route, env: TypedEnvelope[msgspec.Raw]) -> list[dict[str, object]]:
+        ticks = default_ticks(route.kind, route.name, env) if route.kind is not None else []
+        if route.explicit:
+            values = self._explicit(route, env)
+            if ticks:
+                ticks[0].update(values)  # one tick sets the explicit inputs' streams too
+            elif values:
+                ticks.append(values)
+        return ticks
+
+    def _explicit(self, route: _Route, env: TypedEnvelope[msgspec.Raw]) -> dict[str, object]:
         values: dict[str, object] = {}
-        if route.kind is not None:
-            values.update(default_values(route.kind, route.name, env))
         if route.explicit:
             body = _plain(_any_body(env.body))  # depth-checked before _plain recurses
             for stream, fld in route.explicit:
