@@ -48,7 +48,8 @@ def cross_imports() -> list[tuple[str, int, str, str]]:
     found = []
     for top in SOURCES:
         for path in sorted((REPO / top).rglob("*.py")):
-            if ".venv" in path.parts or "results" in path.parts:
+            hidden = any(p.startswith(".") for p in path.relative_to(REPO).parts)  # .venv
+            if hidden or "results" in path.parts:
                 continue
             tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
             for node in ast.walk(tree):

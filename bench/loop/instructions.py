@@ -75,7 +75,7 @@ async def _chain(traced: bool, cycles: int) -> None:
     async with (
         MemoryFabric() as fabric,
         open_service(KnowledgeConfig(system=SYSTEM), fabric=fabric),
-        run_nodes(nodes, fabric=fabric, system=SYSTEM),
+        run_nodes(nodes, fabric=fabric, system=SYSTEM, gc_idle=True),
         anyio.create_task_group() as tg,
     ):
         if traced:

@@ -80,7 +80,7 @@ def imports_from_sim_world() -> list[tuple[str, str, str]]:
     found = []
     for top in ("bench", "examples", "libs", "schemas", "services", "tests"):
         for path in sorted((REPO / top).rglob("*.py")):
-            if OWN in path.parents or ".venv" in path.parts:
+            if OWN in path.parents or any(p.startswith(".") for p in path.relative_to(REPO).parts):
                 continue
             tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
             for node in ast.walk(tree):

@@ -102,7 +102,7 @@ def _imports_from_the_checker() -> dict[tuple[str, str], list[str]]:
     src = ROOT / "services" / "trust_checker" / "src"
     for top in ("bench", "tests", "examples", "libs", "services"):
         for path in sorted((ROOT / top).rglob("*.py")):
-            if src in path.parents or ".venv" in path.parts:
+            if src in path.parents or any(p.startswith(".") for p in path.relative_to(ROOT).parts):
                 continue
             tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
             for node in ast.walk(tree):

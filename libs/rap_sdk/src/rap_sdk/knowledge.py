@@ -320,6 +320,14 @@ class KnowledgeClient:
             return True
         return tag in self._seen_tags and tag not in self._gone_tags
 
+    def has_versions(self, promised: dict[str, int]) -> bool:
+        """Whether :meth:`await_versions` would return at once."""
+        for key, version in promised.items():
+            rep = self._replicas.get(key)
+            if rep is not None and rep.version < version and self.writer_alive(version):
+                return False
+        return True
+
     async def await_versions(self, promised: dict[str, int], deadline: float) -> None:
         """Wait until each replicated key in ``promised`` has reached its version, or the
         monotonic ``deadline``; never raises (the read that needs a version says so).

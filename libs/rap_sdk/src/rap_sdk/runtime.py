@@ -17,9 +17,10 @@ import asyncio
 import logging
 import signal
 import time
-from collections.abc import AsyncIterator, Callable, Sequence
+from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 import anyio
@@ -37,6 +38,7 @@ from .envelope import (
 )
 from .errors import BackpressureTimeout, LifecycleError, RapError, RejectedSample
 from .fabric import Fabric, Outgoing, Sample, Subscription
+from .gc import IdleCollector
 from .knowledge import _MISSING, KnowledgeClient
 from .node import Node, Route
 from .rejections import Rejections, Throttle
@@ -56,6 +58,10 @@ log = logging.getLogger(__name__)
 
 RECORD_TIMEOUT = 1.0
 """Seconds a trace or rejection record may wait for room in a local inbox."""
+MAX_DIRECT_DEPTH = 16
+"""How many handlers may run nested in one task by direct dispatch (a chain of local
+stages each handling what the one before sent); deeper, samples go through inboxes."""
+_depth = [0]
 SEND_TIMEOUT = 1.0
 """Seconds a handler's emit or publish may wait for room in a local node's full FIFO
 inbox before that node is skipped (counted and logged): local nodes that send to each
@@ -303,9 +309,9 @@ class NodeRuntime:
         self.sealer = Sealer(node.name, self.clock)
         self.opener = Opener(self.clock)
         self.stats = NodeStats()
-        # one consumer task per route: a node with one route is serialised already; with
-        # several, a lock keeps one handler at a time (asyncio's: no loop turn uncontended)
-        self._lock = asyncio.Lock() if len(node.routes) > 1 else None
+        # one handler at a time: the consumer tasks of the routes and direct dispatch
+        # (in a publisher's task) take the lock (asyncio's: no loop turn uncontended)
+        self._lock = asyncio.Lock()
         self._subs: list[Subscription] = []
         self.rejections = Rejections(node.name, log, clock=self.clock.time_ns)
         self._drop_log = Throttle()
@@ -315,6 +321,9 @@ class NodeRuntime:
         self._stop_requested = False
         self._knowledge: KnowledgeClient | None = None
         self._loop: asyncio.AbstractEventLoop = None  # type: ignore[assignment]  # run()
+        self._calling = 0
+        self._inflight: set[Route] = set()
+        """Routes whose consumer holds a sample it has taken from the inbox."""
         self.event_keys: dict[str, str] = {}
         self.data_keys: dict[str, str] = {}
         self._state = "new"
@@ -330,6 +339,11 @@ class NodeRuntime:
         if len(cache) < 4096:
             cache[name] = key
         return key
+
+    @property
+    def busy(self) -> bool:
+        """A handler is running or a sample is queued."""
+        return bool(self._calling) or any(len(sub.inbox) for sub in self._subs)  # type: ignore[attr-defined]
 
     @property
     def sender_stats(self) -> SenderStats:
@@ -475,6 +489,46 @@ class NodeRuntime:
             payload, _ = self.sealer.seal_message(self._log_key, rec)
             await self._publish_record(self._log_key, payload)
 
+    def direct(self, route: Route, sub: Subscription, sample: Sample) -> Awaitable[None] | None:
+        """The handling of a local ``sample`` to run at once in the publisher's task,
+        when that keeps every guarantee of the inbox: the node runs no handler and its
+        consumers hold no sample, nothing is queued on the route (order), the route is
+        open, the message is a local object of the route's type that passes its check,
+        and the knowledge versions it promises are here (no wait); nesting is bounded
+        (``MAX_DIRECT_DEPTH``). None: the sample goes through the inbox."""
+        inbox = sub.inbox  # type: ignore[attr-defined]
+        if (
+            self._calling
+            or self._inflight
+            or len(inbox)
+            or inbox.closed
+            or _depth[0] >= MAX_DIRECT_DEPTH
+            or self._lock.locked()
+        ):
+            return None
+        env = sample.obj
+        accepts = route.accepts
+        if env is None or accepts is None or not accepts(env.body):
+            return None
+        if route.check is not None and route.check(env.body) is not None:
+            return None  # the inbox path words the rejection
+        kb = self._knowledge
+        if kb is None or (env.ctx and not kb.has_versions(env.ctx)):
+            return None
+        self._calling += 1  # taken: nothing else may start on this node from here
+        inbox.stats.accepted += 1
+        self.stats.received += 1
+        return self._run_direct(route, Context(self, sample.key, env, env.body, 0.0))
+
+    async def _run_direct(self, route: Route, ctx: Context) -> None:
+        _depth[0] += 1
+        try:
+            async with self._lock:
+                await self._call(route, ctx)
+        finally:
+            _depth[0] -= 1
+            self._calling -= 1
+
     async def handle(self, route: Route, sample: Sample) -> None:
         """Open, check, decode and dispatch one sample to ``route``'s handler."""
         self.stats.received += 1
@@ -511,11 +565,8 @@ class NodeRuntime:
             deadline = (sample.arrived or time.monotonic()) + kb.timeout
             await kb.await_versions(env.ctx, deadline)
         ctx = Context(self, sample.key, env, env.body, deadline)
-        if self._lock is None:
+        async with self._lock:
             await self._call(route, ctx)
-        else:
-            async with self._lock:
-                await self._call(route, ctx)
 
     async def _call(self, route: Route, ctx: Context) -> None:
         clock = self.clock
@@ -530,6 +581,7 @@ class NodeRuntime:
             # runs only if the handler gives the loop a turn before it returns
             waited = self._loop.call_soon(self._waited, ctx)
         error = ""
+        self._calling += 1
         try:
             if route.takes_message:
                 await route.fn(ctx, ctx.message)
@@ -553,6 +605,8 @@ class NodeRuntime:
                 )
         else:
             self.stats.handled += 1
+        finally:
+            self._calling -= 1
         if waited is not None:
             waited.cancel()
         if traced:
@@ -601,6 +655,8 @@ class NodeRuntime:
                     sub = self.fabric.subscribe(
                         self.route_key(route), route.policy, prepare=route.decode
                     )
+                    if hasattr(sub, "direct") and route.accepts is not None:
+                        sub.direct = partial(self.direct, route, sub)
                     self._subs.append(sub)
                     tg.start_soon(self._consume, route, sub)
                 # the token comes after the subscriptions: declarations on a link keep
@@ -622,6 +678,7 @@ class NodeRuntime:
 
     async def _consume(self, route: Route, sub: Subscription) -> None:
         get, handle = sub.inbox.get, self.handle  # type: ignore[attr-defined]
+        inflight = self._inflight
         stats = sub.stats
         counted = 0
         while True:
@@ -633,7 +690,11 @@ class NodeRuntime:
             if stats.dropped != counted:
                 self._dropped(route, stats.dropped - counted)
                 counted = stats.dropped
-            await handle(route, sample)
+            inflight.add(route)
+            try:
+                await handle(route, sample)
+            finally:
+                inflight.discard(route)
 
     def _dropped(self, route: Route, n: int) -> None:
         """Samples an inbox dropped: counted, and said (at most once a second a route)."""
@@ -685,6 +746,8 @@ class NodeGroup:
 
     def __init__(self, runtimes: Sequence[NodeRuntime]) -> None:
         self.runtimes = list(runtimes)
+        self.collector: IdleCollector | None = None
+        """The garbage collector of ``run_nodes(gc_idle=True)``."""
 
     def __getitem__(self, name: str) -> NodeRuntime:
         for rt in self.runtimes:
@@ -695,6 +758,8 @@ class NodeGroup:
     def stop(self) -> None:
         for rt in self.runtimes:
             rt.stop()
+        if self.collector is not None:
+            self.collector.stop()
 
 
 @asynccontextmanager
@@ -706,10 +771,12 @@ async def run_nodes(
     clock: Clock | None = None,
     trace: bool = True,
     grace: float = 5.0,
+    gc_idle: bool = False,
 ) -> AsyncIterator[NodeGroup]:
     """Run ``nodes`` on ``fabric`` until the block exits; every node is subscribed when
     the block starts. On exit, nodes stop taking input, handle what is queued (within
-    ``grace`` s), then are cancelled."""
+    ``grace`` s), then are cancelled. ``gc_idle``: collect garbage only while the nodes
+    are idle (:class:`rap_sdk.gc.IdleCollector`; for a process that runs a loop)."""
     names = [n.name for n in nodes]
     if len(set(names)) != len(names):
         raise LifecycleError(f"node names must be unique within a group: {names}")
@@ -724,6 +791,9 @@ async def run_nodes(
     async with anyio.create_task_group() as tg:
         for rt in group.runtimes:
             await tg.start(rt.run)
+        if gc_idle:
+            group.collector = IdleCollector(lambda: any(rt.busy for rt in group.runtimes))
+            await tg.start(group.collector.run)
         try:
             yield group
         finally:

@@ -91,7 +91,7 @@ async def _serve(share: NodeShare, zconf: ZenohConfig, system: str | None) -> No
             await tg.start(watch.run)
             async with anyio.create_task_group() as share_tg:
                 await share_tg.start(
-                    partial(run_share, share, fabric=fabric, system=system, stop=stop)
+                    partial(run_share, share, fabric=fabric, system=system, stop=stop, gc_idle=True)
                 )
                 log.info("ready: listening on %s", ", ".join(fabric.endpoints))
                 async for signum in signals:

@@ -57,10 +57,13 @@ async def run_share(
     clock: Clock | None = None,
     trace: bool = True,
     grace: float = 5.0,
+    gc_idle: bool = False,
     task_status: TaskStatus[NodeGroup] = anyio.TASK_STATUS_IGNORED,
 ) -> None:
     """Run a loaded share until ``stop`` is set, then stop gracefully: no new input,
     what is queued is handled (within ``grace`` s). Cancelling the task stops at once.
+    ``gc_idle``: collect garbage only while the nodes are idle (the runner process
+    does; see :mod:`rap_sdk.gc`).
 
     ``task_status.started`` gets the :class:`~rap_sdk.NodeGroup` once every Node is
     subscribed and its liveliness token declared. ``system`` overrides the plan's."""
@@ -73,7 +76,13 @@ async def run_share(
         ", ".join(f"{c.name} ({c.spec.stage.value}, {c.spec.module})" for c in share.components),
     )
     async with run_nodes(
-        share.nodes, fabric=fabric, system=system, clock=clock, trace=trace, grace=grace
+        share.nodes,
+        fabric=fabric,
+        system=system,
+        clock=clock,
+        trace=trace,
+        grace=grace,
+        gc_idle=gc_idle,
     ) as group:
         task_status.started(group)
         if stop is None:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
 from time import monotonic
 from types import TracebackType
 from typing import Any, Generic, Self, TypeVar
@@ -33,6 +33,8 @@ log = logging.getLogger(__name__)
 T = TypeVar("T")
 
 DEFAULT_POLICY = InboxPolicy()
+
+Direct = Callable[[Sample], Awaitable[None] | None]
 
 
 class InboxStream(Generic[T]):
@@ -93,6 +95,10 @@ class LocalSubscription(InboxStream[Sample]):
     ) -> None:
         super().__init__(policy, on_close, _payload_size)
         self.group = group
+        self.direct: Direct | None = None
+        """Set by the subscription's consumer: ``direct(sample)`` returns the handling of
+        a local sample to run in the publisher's task at once (the consumer is idle and
+        nothing is queued), or None (the sample goes through the inbox)."""
         self.key_expr = key_expr
         self.remote_handle: object | None = None
         self.prepare = prepare
@@ -165,6 +171,12 @@ class Router:
             if group is not None and sub.group is group:
                 continue  # its owner was handed the sample by the publisher
             sample = sub.sample(key, payload, False)
+            direct = sub.direct
+            if direct is not None:
+                run = direct(sample)
+                if run is not None:
+                    await run  # handled in this task: no inbox, no task switch
+                    continue
             if not sub.inbox.put_nowait(sample):
                 try:
                     await sub.inbox.put(sample, timeout=timeout)

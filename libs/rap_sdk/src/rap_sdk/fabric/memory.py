@@ -160,17 +160,20 @@ class MemoryFabric:
                 )
             if len(self._published) < 4096:
                 self._published.add(key)
-        subs = self._router.matching(key) if local else ()
-        late = await self._router.deliver(subs, key, payload, timeout) if subs else None
+        # other "processes" first (they get bytes, as over a network): a local
+        # subscriber may handle the sample in this task at once, and what it sends must
+        # not reach them before the sample itself
         for member in self.bus.members:
             if member is self:
                 continue
             for sub in member._router.matching(key):
-                # another "process": it gets bytes, as it would over a network
                 data = payload.data if isinstance(payload, Outgoing) else payload
                 sub.inbox.offer(sub.sample(key, data, True))
-        if late is not None:
-            raise late
+        subs = self._router.matching(key) if local else ()
+        if subs:
+            late = await self._router.deliver(subs, key, payload, timeout)
+            if late is not None:
+                raise late
 
     def has_subscribers(self, key: str, *, remote_only: bool = False) -> bool:
         self._life.check_open()

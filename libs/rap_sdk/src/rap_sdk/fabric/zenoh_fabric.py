@@ -310,18 +310,21 @@ class ZenohFabric:
     ) -> None:
         self._life.check_open()
         cell = self._pubs.get(key) or self._declare_publisher(key)  # validates the key
-        subs = self._router.matching(key) if local else ()
-        late = await self._router.deliver(subs, key, payload, timeout) if subs else None
         # The matching flag flips on Zenoh's thread when a remote subscriber's
         # declaration reaches this session, i.e. when Zenoh's own routing would start
         # sending it samples: skipping the put before then loses nothing Zenoh delivers.
+        # Other processes first: a local subscriber may handle the sample in this task
+        # at once, and what it sends must not reach them before the sample itself.
         if cell.matching:
             try:
                 cell.pub.put(payload.data if isinstance(payload, Outgoing) else payload)
             except zenoh.ZError as exc:
                 raise FabricError(f"publish on {key!r} failed: {exc}") from None
-        if late is not None:
-            raise late
+        subs = self._router.matching(key) if local else ()
+        if subs:
+            late = await self._router.deliver(subs, key, payload, timeout)
+            if late is not None:
+                raise late
 
     def _declare_publisher(self, key: str) -> _Pub:
         validate(key)
