@@ -4,7 +4,8 @@
 
 Three children, each run twice under ``valgrind --tool=callgrind`` with ``N`` and ``2N``
 cycles after the same warm-up; the difference of the two totals divided by ``N`` is the
-cost of one cycle, with start-up, imports and warm-up cancelled out:
+cost of one cycle, with start-up, imports and warm-up cancelled out (after the warm-up the
+heap is collected and frozen, so that both runs start the counted cycles alike):
 
 - ``direct``: the five handlers of the race's chain called directly on a dict
   (``chain.handlers``): what the loop's own logic costs;
@@ -20,6 +21,7 @@ the ratio of each chain to ``direct``.
 from __future__ import annotations
 
 import argparse
+import gc
 import os
 import re
 import shutil
@@ -49,10 +51,20 @@ def _child(kind: str, cycles: int) -> None:
     scan = make_scan()
     if kind == "direct":
         cycle = handlers(time.time_ns)
-        for _ in range(WARMUP + cycles):
+        for i in range(WARMUP + cycles):
+            if i == WARMUP:
+                _settle()
             assert cycle(scan) is not None
         return
     anyio.run(_chain, kind == "chain-traced", cycles, backend_options={"use_uvloop": True})
+
+
+def _settle() -> None:
+    """After the warm-up, the same heap in both runs: what start-up left is collected and
+    frozen, so a full collection's cost does not depend on where ``N`` falls (it
+    otherwise makes the difference of two runs swing by millions of instructions)."""
+    gc.collect()
+    gc.freeze()
 
 
 class _Robot:
@@ -88,7 +100,9 @@ async def _chain(traced: bool, cycles: int) -> None:
             tg.start_soon(drain)
         rt = NodeRuntime(robot.node, fabric=fabric, system=SYSTEM, trace=False)
         await tg.start(rt.run)
-        for _ in range(WARMUP + cycles):
+        for i in range(WARMUP + cycles):
+            if i == WARMUP:
+                _settle()
             robot.got = anyio.Event()
             await rt.send(key, scan)
             with anyio.fail_after(5):

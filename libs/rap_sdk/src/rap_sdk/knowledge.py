@@ -154,7 +154,7 @@ class Versioned(msgspec.Struct, frozen=True):
 
 
 class _Replica:
-    __slots__ = ("changed", "decoded", "key", "ready", "record", "seen_tags", "sub", "types")
+    __slots__ = ("_changed", "decoded", "key", "ready", "record", "seen_tags", "sub", "types")
 
     def __init__(self, key: str, seen_tags: set[int]) -> None:
         self.key = key
@@ -164,7 +164,8 @@ class _Replica:
         not one of them is refused (the replica keeps its last good value)."""
         self.record: KbRecord | None = None
         self.decoded: dict[Any, Any] = {}
-        self.changed = anyio.Event()
+        self._changed: anyio.Event | None = None
+        """Made when someone waits for a newer record (most offers have no waiter)."""
         self.ready = anyio.Event()
         """Set once the replica has caught up (concurrent first readers wait for it)."""
         self.sub: Subscription | None = None
@@ -173,14 +174,22 @@ class _Replica:
     def version(self) -> int:
         return self.record.version if self.record is not None else 0
 
+    async def changed(self) -> None:
+        """Wait for the next record adopted."""
+        if self._changed is None:
+            self._changed = anyio.Event()
+        await self._changed.wait()
+
     def offer(self, rec: KbRecord, decoded: dict[Any, Any] | None = None) -> bool:
         if rec.version <= self.version:
             return False
         self.seen_tags.add(rec.version & 0xFF)
         self.record = rec
         self.decoded = decoded if decoded is not None else {}
-        self.changed.set()
-        self.changed = anyio.Event()
+        changed = self._changed
+        if changed is not None:
+            self._changed = None
+            changed.set()
         return True
 
 
@@ -239,6 +248,8 @@ class KnowledgeClient:
         """Called with each rejection record that is due (rate-limited): a node's
         runtime publishes them on its log key."""
         self._replicas: dict[str, _Replica] = {}
+        self._valid: set[str] = set()
+        """Keys already checked (bounded)."""
         self._kb_keys: dict[str, str] = {}
         self._own: dict[str, KbRecord] = {}
         """This client's last write of each key it has not replicated (yet)."""
@@ -343,7 +354,7 @@ class KnowledgeClient:
             self.waits += 1
             with anyio.move_on_after(left):
                 while rep.version < version:
-                    await rep.changed.wait()
+                    await rep.changed()
 
     async def __aexit__(
         self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
@@ -512,7 +523,7 @@ class KnowledgeClient:
             self.waits += 1
             with anyio.move_on_after(deadline):
                 while rep.version < min_version:
-                    await rep.changed.wait()
+                    await rep.changed()
         if rep.version < min_version:
             await self._refresh(rep, min_version)
         if rep.version < min_version:
@@ -750,14 +761,17 @@ class KnowledgeClient:
 
     # -- plumbing --------------------------------------------------------------------------
 
-    @staticmethod
-    def _check_key(key: str) -> None:
+    def _check_key(self, key: str) -> None:
+        if key in self._valid:
+            return
         keys.kb("x", key)
         if key.split("/")[0].startswith("_"):
             raise KnowledgeError(
                 f"knowledge key {key!r}: keys whose first chunk starts with '_' are reserved",
                 "bad-request",
             )
+        if len(self._valid) < 4096:
+            self._valid.add(key)
 
     def _kb_key(self, key: str) -> str:
         full = self._kb_keys.get(key)

@@ -47,7 +47,10 @@ class MemoryStore:
         if (rec.version, rec.writer) not in ids:
             ids.add((rec.version, rec.writer))
             hist = self._history.setdefault(rec.key, [])
-            bisect.insort(hist, rec, key=_order)
+            if not hist or _order(hist[-1]) <= _order(rec):
+                hist.append(rec)  # the usual case: the newest
+            else:
+                bisect.insort(hist, rec, key=_order)
             self._trim(rec.key, hist, ids)
         if rec.version > cur_version:
             self._latest[rec.key] = rec
