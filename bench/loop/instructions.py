@@ -5,7 +5,7 @@
 Three children, each run twice under ``valgrind --tool=callgrind`` with ``N`` and ``2N``
 cycles after the same warm-up; the difference of the two totals divided by ``N`` is the
 cost of one cycle, with start-up, imports and warm-up cancelled out (after the warm-up the
-heap is collected and frozen, so that both runs start the counted cycles alike):
+heap is collected and frozen and collection is off: see ``_settle``):
 
 - ``direct``: the five handlers of the race's chain called directly on a dict
   (``chain.handlers``): what the loop's own logic costs;
@@ -60,11 +60,15 @@ def _child(kind: str, cycles: int) -> None:
 
 
 def _settle() -> None:
-    """After the warm-up, the same heap in both runs: what start-up left is collected and
-    frozen, so a full collection's cost does not depend on where ``N`` falls (it
-    otherwise makes the difference of two runs swing by millions of instructions)."""
+    """After the warm-up: what start-up left is collected and frozen, and collection
+    stays off for the counted cycles, in every kind alike. A collection's cost depends
+    on what has piled up (the gate remembers 4,096 plans, the knowledge history 1,000
+    records a key), so with it on the count per cycle grows with ``N`` and the
+    difference of two runs swings by millions of instructions. RAP's runners collect
+    when idle instead (``rap_sdk.gc``); what that costs shows in the paced rows' p99."""
     gc.collect()
     gc.freeze()
+    gc.disable()
 
 
 class _Robot:
@@ -87,7 +91,7 @@ async def _chain(traced: bool, cycles: int) -> None:
     async with (
         MemoryFabric() as fabric,
         open_service(KnowledgeConfig(system=SYSTEM), fabric=fabric),
-        run_nodes(nodes, fabric=fabric, system=SYSTEM, gc_idle=True),
+        run_nodes(nodes, fabric=fabric, system=SYSTEM),
         anyio.create_task_group() as tg,
     ):
         if traced:
@@ -117,7 +121,15 @@ _TOTAL = re.compile(r"^(?:summary|totals):\s+(\d+)", re.MULTILINE)
 def _instructions(kind: str, cycles: int) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "callgrind.out"
-        env = {**os.environ, "PYTHONHASHSEED": "0", "RERUN_ANALYTICS": "0"}
+        # one thread: numpy's BLAS pool otherwise starts threads whose instructions
+        # count by wall time, not by cycle (the two runs' difference then drifts)
+        env = {
+            **os.environ,
+            "PYTHONHASHSEED": "0",
+            "RERUN_ANALYTICS": "0",
+            "OPENBLAS_NUM_THREADS": "1",
+            "OMP_NUM_THREADS": "1",
+        }
         subprocess.run(
             [
                 "valgrind",
