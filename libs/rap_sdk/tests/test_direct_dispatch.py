@@ -159,3 +159,61 @@ async def test_a_sample_promising_a_version_not_here_yet_goes_through_the_inbox(
         own = rt.knowledge.clock.next()  # a version of this node's own writer: awaited
         await rt.send(keys.event(SYSTEM, "go"), Empty(), ctx={"k": own})
         assert handled_in == []  # not handled in the sender's task: it would wait there
+
+
+@pytest.mark.parametrize("kind", KINDS)
+async def test_subscribers_of_one_sample_may_wait_for_each_other(kind: str) -> None:
+    """At most one subscriber runs in the sender's task, after the others have the
+    sample in their inboxes: one that waits for another does not hold it up."""
+    started = {"a": anyio.Event(), "b": anyio.Event()}
+    done: list[str] = []
+
+    def waiter(me: str, other: str) -> Node:
+        node = Node(me)
+
+        @node.on_data("t")
+        async def on_t(ctx: Context, m: SimTime) -> None:
+            started[me].set()
+            with anyio.fail_after(5):
+                await started[other].wait()
+            done.append(me)
+
+        return node
+
+    nodes = [waiter("a", "b"), waiter("b", "a"), Node("sender")]
+    async with fabric_of(kind) as fabric, run_nodes(nodes, fabric=fabric, system=SYSTEM) as g:
+        await g["sender"].send(keys.data(SYSTEM, "t"), tick(1))
+        with anyio.fail_after(5):
+            while len(done) < 2:  # noqa: ASYNC110
+                await anyio.sleep(0.01)
+    assert sorted(done) == ["a", "b"]
+
+
+async def test_only_the_last_send_of_a_handler_is_handled_in_its_task() -> None:
+    tasks: dict[str, object] = {}
+    sender, first, last = Node("s"), Node("first"), Node("last")
+
+    @sender.on_event("go")
+    async def go(ctx: Context) -> None:
+        await ctx.emit("one")
+        await ctx.emit("two")
+
+    @first.on_event("one")
+    async def one(ctx: Context) -> None:
+        tasks["one"] = anyio.get_current_task().id
+
+    @last.on_event("two")
+    async def two(ctx: Context) -> None:
+        tasks["two"] = anyio.get_current_task().id
+
+    async with (
+        MemoryFabric() as fabric,
+        run_nodes([sender, first, last], fabric=fabric, system=SYSTEM) as g,
+    ):
+        await g["s"].send(keys.event(SYSTEM, "go"), Empty())
+        with anyio.fail_after(5):
+            while len(tasks) < 2:  # noqa: ASYNC110
+                await anyio.sleep(0.01)
+    here = anyio.get_current_task().id
+    assert tasks["two"] == here  # go, then two, ran in this task
+    assert tasks["one"] != here  # one went through first's inbox

@@ -156,12 +156,27 @@ class _Plans:
         self.cls = cls
         self.decode = msgspec.msgpack.Decoder(cls).decode
 
-    def typed(self, proposal: PlanProposal[msgspec.Raw]) -> tuple[PlanProposal[Any] | None, str]:
+    def plan_ok(self, plan: Any) -> bool:
+        """A plan a local object may carry to a route that types it (else the sample
+        goes through bytes, and a plan of another type is refused with the reason)."""
+        return type(plan) is self.cls or type(plan) is msgspec.Raw
+
+    def accepts_proposal(self, p: Any) -> bool:
+        return type(p) is PlanProposal and self.plan_ok(p.plan)
+
+    def accepts_verdict(self, v: Any) -> bool:
+        return type(v) is Verdict and (v.proposal is None or self.accepts_proposal(v.proposal))
+
+    def typed(self, proposal: PlanProposal[Any]) -> tuple[PlanProposal[Any] | None, str]:
+        """The proposal with its plan typed: decoded from the raw plan that came over the
+        wire, or as it is when a stage in this process sent it typed already."""
         if proposal.plan_type != self.cls.TYPE:
             return None, (
                 f"a plan of type {proposal.plan_type!r}, but this stage handles "
                 f"{self.cls.TYPE}; propose it on the event of a stage that handles it"
             )
+        if type(proposal.plan) is self.cls:
+            return proposal, ""
         try:
             plan = self.decode(proposal.plan)
         except DECODE_ERRORS as exc:
@@ -215,7 +230,13 @@ def legitimate(
                 await ctx.emit(rejected, answer)
 
         decide.__qualname__ = getattr(fn, "__qualname__", decide.__qualname__)
-        node._route("event", event, policy or EVENT_POLICY, PlanProposal[msgspec.Raw])(decide)
+        node._route(
+            "event",
+            event,
+            policy or EVENT_POLICY,
+            PlanProposal[msgspec.Raw],
+            accepts=plans.accepts_proposal,
+        )(decide)
         return fn
 
     return register
@@ -519,9 +540,14 @@ class ApprovalGate:
                 await self._refuse(ctx, verdict, reason, rejected)
 
             gated.__qualname__ = getattr(fn, "__qualname__", gated.__qualname__)
-            node._route("event", event, policy or EVENT_POLICY, Verdict[msgspec.Raw], gated=True)(
-                gated
-            )
+            node._route(
+                "event",
+                event,
+                policy or EVENT_POLICY,
+                Verdict[msgspec.Raw],
+                gated=True,
+                accepts=plans.accepts_verdict,
+            )(gated)
             return fn
 
         return register

@@ -240,11 +240,14 @@ class Node:
         check: Callable[[Any], str | None] | None = None,
         gated: bool = False,
         max_bytes: int | None = None,
+        accepts: Callable[[Any], bool] | None = None,
     ) -> Callable[[F], F]:
         """Register a handler. ``declared``: the message type given by the decorator (may
         be a parametrized generic such as ``PlanProposal[SpinPlan]``); the handler's
         annotation may give it instead; without either a handler that takes no message
-        gets ``rap.Empty/1`` events (``rap.TrustOutput/1`` on trust routes)."""
+        gets ``rap.Empty/1`` events (``rap.TrustOutput/1`` on trust routes). ``accepts``:
+        which local objects the handler takes as they are (default: exactly ``declared``,
+        see :func:`acceptor`)."""
         _BUILDERS[kind]("x", name)  # validates the topic / event name / trust stream
 
         def register(fn: F) -> F:
@@ -289,7 +292,7 @@ class Node:
                     policy,
                     check,
                     MAX_SAMPLE_BYTES if max_bytes is None else max_bytes,
-                    acceptor(wire),
+                    accepts if accepts is not None else acceptor(wire),
                 )
             )
             return fn

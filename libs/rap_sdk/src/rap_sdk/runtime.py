@@ -413,8 +413,11 @@ class NodeRuntime:
     async def _send_queued(self, ctx: Context) -> None:
         out, ctx._out = ctx._out, None
         if out:
-            for key, o in out:
-                await self._send_out(key, o)
+            for key, o in out[:-1]:
+                o.direct = False  # only the last send may be handled in this task: a
+                await self._send_out(key, o)  # handler that waits then holds up nothing
+            key, o = out[-1]
+            await self._send_out(key, o)
 
     async def _trace(
         self,

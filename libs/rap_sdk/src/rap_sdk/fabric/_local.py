@@ -166,28 +166,43 @@ class Router:
         others still do; the timeout is returned for the caller to raise once the
         sample has gone everywhere else. Callers skip the call when ``subs`` is empty."""
         late: BackpressureTimeout | None = None
-        group = payload.group if isinstance(payload, Outgoing) else None
+        group = direct_to = None
+        if isinstance(payload, Outgoing):
+            group = payload.group
+            if payload.direct:
+                # at most one subscriber handles it in this task, after every other one
+                # has it in its inbox: one that waits for another then lets it run
+                direct_to = next((s for s in reversed(subs) if s.direct is not None), None)
         for sub in subs:
-            if group is not None and sub.group is group:
-                continue  # its owner was handed the sample by the publisher
-            sample = sub.sample(key, payload, False)
-            direct = sub.direct
-            if direct is not None:
-                run = direct(sample)
-                if run is not None:
-                    await run  # handled in this task: no inbox, no task switch
-                    continue
-            if not sub.inbox.put_nowait(sample):
-                try:
-                    await sub.inbox.put(sample, timeout=timeout)
-                except BackpressureTimeout as exc:
-                    sub.inbox.stats.dropped += 1
-                    late = exc
+            if sub is direct_to or (group is not None and sub.group is group):
+                continue  # the last; or its owner was handed the sample by the publisher
+            late = await _enqueue(sub, sub.sample(key, payload, False), timeout) or late
+        if direct_to is not None:
+            sample = direct_to.sample(key, payload, False)
+            assert direct_to.direct is not None
+            run = direct_to.direct(sample)
+            if run is not None:
+                await run  # handled in this task: no inbox, no task switch
+            else:
+                late = await _enqueue(direct_to, sample, timeout) or late
         return late
 
     def close_all(self) -> None:
         for sub in list(self._subs):
             sub.close()
+
+
+async def _enqueue(
+    sub: LocalSubscription, sample: Sample, timeout: float | None
+) -> BackpressureTimeout | None:
+    if sub.inbox.put_nowait(sample):
+        return None
+    try:
+        await sub.inbox.put(sample, timeout=timeout)
+    except BackpressureTimeout as exc:
+        sub.inbox.stats.dropped += 1
+        return exc
+    return None
 
 
 class Lifecycle:

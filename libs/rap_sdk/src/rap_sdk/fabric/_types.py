@@ -32,7 +32,7 @@ class Outgoing:
     reads the bytes). Local subscribers may receive the object itself: it is shared,
     so it must never be modified (RAP's messages are frozen Structs)."""
 
-    __slots__ = ("_data", "_encode", "group", "obj")
+    __slots__ = ("_data", "_encode", "direct", "group", "obj")
 
     def __init__(self, obj: Any, encode: Callable[[Any], bytes], group: object = None) -> None:
         self.obj = obj
@@ -41,6 +41,9 @@ class Outgoing:
         self.group = group
         """Local subscriptions made with this ``group`` do not get the sample: their
         owners were handed it directly by the publisher (knowledge replicas)."""
+        self.direct = True
+        """Whether a local subscriber may handle it in the publisher's task (direct
+        dispatch); a node's runtime allows it only for the last of a handler's sends."""
 
     @property
     def encoded(self) -> bool:
