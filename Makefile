@@ -8,7 +8,7 @@ DEMO_ARGS ?=
 EVAL_ARGS ?=
 FUZZ_ARGS ?=
 
-.PHONY: help setup sync test lint format typecheck schemas bench bench-fabric bench-knowledge bench-sim bench-loop bench-trust fuzz demo eval clean
+.PHONY: help setup sync test lint format typecheck schemas bench bench-fabric bench-knowledge bench-sim bench-loop bench-fleet bench-trust fuzz demo eval clean
 
 help:
 	@echo "make demo       run the lidar-occlusion loop end to end (out/demo/summary.json, demo.rrd)"
@@ -18,6 +18,7 @@ help:
 	@echo "make typecheck  mypy --strict on schemas, libs and services"
 	@echo "make schemas    export JSON Schema of every wire message to schemas/json"
 	@echo "make bench      run the benchmarks; results in bench/results and docs/benchmarks.md"
+	@echo "make bench-fleet  50 robots' loops at 5 Hz on this machine (bench/results/fleet.json)"
 	@echo "make fuzz       fuzz every subscriber of a running loop (bench/results/fuzz.json, docs/reliability.md)"
 
 # Install uv from PyPI when it is missing, then sync the locked workspace.
@@ -63,6 +64,11 @@ bench-trust: setup
 # The loop race against RPIO 0.4.3 (its own venv in bench/.rpio-venv; ~10 min)
 bench-loop: setup
 	$(RUN) python -m bench.loop
+
+# 50 simulated robots, each with its own five-stage loop at 5 Hz (sim_world, one knowledge
+# service, 2 runners): latency, lost cycles, CPU and RSS (bench/results/fleet.json)
+bench-fleet: setup
+	$(RUN) python -m bench.fleet
 
 # Mutated samples at every subscriber of a running lidar-occlusion loop, bounded in time
 # (FUZZ_ARGS="--seconds 300 --samples 100000 --seed 1"): bench/results/fuzz.json
