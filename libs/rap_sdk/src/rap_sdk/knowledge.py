@@ -431,7 +431,9 @@ class KnowledgeClient:
         shared = value is not None and _shareable(value)
         for other in self._group.clients:
             if other is not self and rec.key in other._replicas:
-                await other._handed(rec, value if shared else None)
+                refused = other._handed(rec, value if shared else None)
+                if refused is not None:
+                    await other._rejected(refused)
         rep = self._replicas.get(rec.key)
         if rep is not None:
             rep.offer(rec, {type(value): value} if shared and type(value) in rep.types else None)
@@ -482,7 +484,15 @@ class KnowledgeClient:
         that version is known, then ask the service; a version whose writer is not
         alive is not waited for. A missing or deleted key returns ``default``, a
         version that does not come raises ``KnowledgeError``."""
-        rec = await self.read_record(key, min_version=min_version, timeout=timeout)
+        rep = self._replicas.get(key)
+        if rep is not None and rep.version >= min_version and rep.ready.is_set():
+            rec = rep.record  # here already: no wait, nothing to ask
+            if rec is not None and not rec.deleted:
+                hit = rep.decoded.get(type, _MISSING)
+                if hit is not _MISSING:
+                    return hit
+        else:
+            rec = await self.read_record(key, min_version=min_version, timeout=timeout)
         if rec is None or rec.deleted:
             if default is _MISSING:
                 raise KnowledgeError(
@@ -604,13 +614,15 @@ class KnowledgeClient:
             if self.opener.stats.missing > missing:  # a write went missing: catch up
                 await self._refresh_quietly(rep)
 
-    async def _handed(self, rec: KbRecord, value: Any) -> None:
+    def _handed(self, rec: KbRecord, value: Any) -> Rejection | None:
         """A co-located client wrote ``rec`` (``value``: the written object, when it
         is a frozen Struct): adopted as a record from the stream would be, but read as
-        the written object where this client reads the key as exactly its type."""
+        the written object where this client reads the key as exactly its type. A
+        record of another type is refused: the rejection record (when due) is
+        returned for the writer to publish."""
         rep = self._replicas[rec.key]
         if rec.version <= rep.version:
-            return
+            return None
         types = rep.types
         if value is not None and len(types) == 1 and types[0] is type(value):
             decoded: dict[Any, Any] | None = {types[0]: value}
@@ -619,12 +631,10 @@ class KnowledgeClient:
                 decoded = self._typed(rec, rep)
             except RejectedSample as exc:
                 key = self._kb_key(rec.key)
-                await self._rejected(
-                    self.rejections.reject(key, exc.reason, source=rec.writer, type=exc.type)
-                )
-                return
+                return self.rejections.reject(key, exc.reason, source=rec.writer, type=exc.type)
         self.clock.observe(rec.version)
         rep.offer(rec, decoded)
+        return None
 
     def _check(self, rec: KbRecord, key: str) -> None:
         """The bounds the service applies (a replica must not adopt for good what the

@@ -320,7 +320,8 @@ class NodeRuntime:
         self._stopping: anyio.Event | None = None
         self._stop_requested = False
         self._knowledge: KnowledgeClient | None = None
-        self._loop: asyncio.AbstractEventLoop = None  # type: ignore[assignment]  # run()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        """The loop ``run`` runs on (handle() may also be called without it, in tests)."""
         self._calling = 0
         self._inflight: set[Route] = set()
         """Routes whose consumer holds a sample it has taken from the inbox."""
@@ -582,7 +583,7 @@ class NodeRuntime:
             ctx.access = []
             ctx._route = route
             # runs only if the handler gives the loop a turn before it returns
-            waited = self._loop.call_soon(self._waited, ctx)
+            waited = (self._loop or asyncio.get_running_loop()).call_soon(self._waited, ctx)
         error = ""
         self._calling += 1
         try:
