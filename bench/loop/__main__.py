@@ -233,6 +233,10 @@ ROWS_EXPLAINED = [
     "- `rap-5proc`: each stage in its own runner process (six hops between processes).",
     "- `rpio-redis`, `rpio-mqtt`: the peer, RPIO 0.4.3's generated five-stage loop over "
     "Redis and over MQTT, run by the reference harness.",
+    "",
+    "Wall-clock rows are paced rounds of a few seconds each; on a small shared machine "
+    "their p50 ratios move by up to 1.5x from one run to the next (compare runs before "
+    "reading much into one budget line). The instruction counts above do not move.",
 ]
 
 

@@ -454,3 +454,50 @@ async def test_a_subscription_of_the_publishers_group_is_skipped(pair: tuple[Any
     assert (await get(other)).payload == b"bytes"
     assert (await get(fed)).payload == b"bytes"
     assert fed.get_nowait() is None
+
+
+# -- direct dispatch hooks (the runtime sets them; see test_direct_dispatch.py) ---------
+
+
+async def test_a_direct_hook_takes_a_local_object_after_every_other_subscriber(
+    pair: tuple[Any, Any],
+) -> None:
+    a, _ = pair
+    order: list[str] = []
+    plain = a.subscribe("rap/s/data/d")
+    hooked = a.subscribe("rap/s/data/d")
+
+    def take(sample: Any) -> Any:
+        async def run() -> None:
+            order.append(f"direct {sample.obj}")
+            assert len(plain.inbox) == 1  # the other subscriber has it already
+
+        return run()
+
+    hooked.direct = take
+    await a.publish("rap/s/data/d", Outgoing("x", _Counted()))
+    assert order == ["direct x"]
+    assert hooked.get_nowait() is None  # handled, not queued
+    assert (await get(plain)).obj == "x"
+
+
+async def test_a_declining_hook_or_bytes_or_a_non_direct_send_goes_to_the_inbox(
+    pair: tuple[Any, Any],
+) -> None:
+    a, _ = pair
+    calls: list[object] = []
+    sub = a.subscribe("rap/s/data/d", InboxPolicy(capacity=1, overflow=Overflow.LATEST))
+
+    def decline(sample: Any) -> None:
+        calls.append(sample.obj)
+        return None
+
+    sub.direct = decline
+    await a.publish("rap/s/data/d", Outgoing(1, _Counted()))  # declined: queued
+    await a.publish("rap/s/data/d", b"raw")  # bytes: never offered to the hook
+    later = Outgoing(3, _Counted())
+    later.direct = False  # not the last of a handler's sends
+    await a.publish("rap/s/data/d", later)
+    assert calls == [1]
+    assert (await get(sub)).obj == 3  # the inbox's own policy: the newest kept
+    assert sub.stats.dropped == 2
