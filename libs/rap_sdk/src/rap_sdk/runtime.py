@@ -611,8 +611,8 @@ class NodeRuntime:
             self.stats.handled += 1
         finally:
             self._calling -= 1
-        if waited is not None:
-            waited.cancel()
+            if waited is not None:
+                waited.cancel()  # also when the call was cancelled
         if traced:
             end = clock.time_ns()
             if ctx._starting is not None:
