@@ -6,6 +6,7 @@ from __future__ import annotations
 import gc
 import time
 import weakref
+from collections.abc import Iterator
 
 import anyio
 import pytest
@@ -13,6 +14,15 @@ from rap_sdk import Context, MemoryFabric, Node, run_nodes
 from rap_sdk.gc import IdleCollector
 
 pytestmark = pytest.mark.anyio
+
+
+@pytest.fixture(autouse=True)
+def _thawed() -> Iterator[None]:
+    """A collector freezes the heap and turns collection off: undone after each test,
+    whatever it asserted."""
+    yield
+    gc.unfreeze()
+    gc.enable()
 
 
 class _Cyclic:
@@ -41,7 +51,6 @@ async def test_collects_when_idle_and_gives_collection_back() -> None:
         assert collector.stats.idle >= 1
         collector.stop()
     assert gc.isenabled()
-    gc.unfreeze()
 
 
 async def test_a_busy_loop_is_collected_once_the_bound_is_passed() -> None:
@@ -58,7 +67,6 @@ async def test_a_busy_loop_is_collected_once_the_bound_is_passed() -> None:
         assert collector.stats.forced >= 1
         assert collector.stats.idle == 0
         collector.stop()
-    gc.unfreeze()
 
 
 async def test_run_nodes_with_idle_collection_stops_at_once() -> None:
@@ -78,4 +86,3 @@ async def test_run_nodes_with_idle_collection_stops_at_once() -> None:
         assert time.monotonic() - t0 < 2.0  # not the 5 s grace
     assert seen == [1]
     assert gc.isenabled()
-    gc.unfreeze()

@@ -149,9 +149,8 @@ class Sealer:
     ) -> tuple[bytes, OutgoingEnvelope]:
         """Seal a typed message (None: an ``rap.Empty/1`` event): envelope and body are
         encoded in one pass."""
-        if message is None:
-            message = _EMPTY
-        return self._seal(key, message.TYPE, message, cycle, cause, ctx)
+        out = self.seal_out(key, message, cycle=cycle, cause=cause, ctx=ctx)
+        return out.data, out.obj
 
     def seal_out(
         self,
@@ -180,18 +179,7 @@ class Sealer:
     ) -> tuple[bytes, OutgoingEnvelope]:
         """Seal a body already encoded as msgpack, under wire type ``type_name`` (for
         relays and tests that need a body of their own making)."""
-        return self._seal(key, type_name, msgspec.Raw(body), cycle, cause, ctx)
-
-    def _seal(
-        self,
-        key: str,
-        type_name: str,
-        body: Any,
-        cycle: bytes | None,
-        cause: bytes | None,
-        ctx: dict[str, int] | None,
-    ) -> tuple[bytes, OutgoingEnvelope]:
-        env = self._envelope(key, type_name, body, cycle, cause, ctx)
+        env = self._envelope(key, type_name, msgspec.Raw(body), cycle, cause, ctx)
         return _encode(env), env
 
     def _envelope(

@@ -506,19 +506,18 @@ class FabricTransport:
 
     def _explicit(self, route: _Route, env: TypedEnvelope[msgspec.Raw]) -> dict[str, object]:
         values: dict[str, object] = {}
-        if route.explicit:
-            body = _plain(_any_body(env.body))  # depth-checked before _plain recurses
-            for stream, fld in route.explicit:
-                if fld is None:
-                    values[stream] = from_plain(body)
-                elif isinstance(body, dict) and fld in body:
-                    values[stream] = from_plain(body[fld])
-                else:
-                    have = sorted(body) if isinstance(body, dict) else "none"
-                    raise ValueError_(
-                        f"stream {stream!r} reads field {fld!r}, which the body does not "
-                        f"have (fields: {have}) - fix the input's field or the sender"
-                    )
+        body = _plain(_any_body(env.body))  # depth-checked before _plain recurses
+        for stream, fld in route.explicit:
+            if fld is None:
+                values[stream] = from_plain(body)
+            elif isinstance(body, dict) and fld in body:
+                values[stream] = from_plain(body[fld])
+            else:
+                have = sorted(body) if isinstance(body, dict) else "none"
+                raise ValueError_(
+                    f"stream {stream!r} reads field {fld!r}, which the body does not "
+                    f"have (fields: {have}) - fix the input's field or the sender"
+                )
         return values
 
     # -- hot swap --------------------------------------------------------------------
