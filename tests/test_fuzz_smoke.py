@@ -9,13 +9,18 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
+from typing import Any
 
 import anyio
 import msgspec
+import numpy as np
 import pytest
+from lidar_occlusion.analysis import to_message
 from lidar_occlusion.demo import default_plan_path
-from lidar_occlusion.scans import occluded_scan
+from lidar_occlusion.scans import BEAMS, occluded_scan
+from rap_schemas import LaserScan
 
 from bench.fuzz.__main__ import render
 from bench.fuzz.mutate import MUTATIONS, Mutator
@@ -40,7 +45,7 @@ def _batch(seed: int) -> list[tuple[str, bytes, bytes]]:
     body = plain(occluded_scan(-0.4, 0.8))
     out = []
     for name in MUTATIONS * 3:
-        valid = m.envelope("rap/demo/data/tb1/scan", "rap.LaserScan/1", body)
+        valid = m.envelope("rap/demo/data/tb1/scan", LaserScan.TYPE, body)
         valid["uid"] = bytes(16)  # uids follow the clock's sub-ms counter: pinned here
         out.append((name, msgspec.msgpack.encode(valid), m.mutate(name, valid)))
     return out
@@ -58,15 +63,58 @@ def test_mutations_are_reproducible_and_each_one_changes_the_sample() -> None:
 
 def test_nonfinite_floats_reach_the_wire() -> None:
     m = Mutator("t", 3)
-    valid = m.envelope("k", "rap.LaserScan/1", plain(occluded_scan()))
-    seen = set()
+    valid = m.envelope("k", LaserScan.TYPE, plain(occluded_scan()))
+    seen, in_ranges = set(), set()
     for _ in range(20):
         env = msgspec.msgpack.decode(m.mutate("nonfinite", valid))
         body = env["body"]
         values = [body[k] for k in ("angle_min", "angle_increment", "range_min", "range_max")]
-        values += body["ranges"] if isinstance(body.get("ranges"), list) else []
+        ranges = list(memoryview(body["ranges"]).cast("f"))  # packed float32
+        values += ranges
         seen |= {repr(v) for v in values if isinstance(v, float) and not math.isfinite(v)}
+        in_ranges |= {repr(v) for v in ranges if not math.isfinite(v)}
     assert {"nan", "inf", "-inf"} <= seen
+    assert {"nan", "-inf"} <= in_ranges  # beams of the packed ranges too
+
+
+@pytest.mark.parametrize(
+    ("msg", "expected"),
+    [
+        pytest.param(
+            occluded_scan(-0.4, 0.8),
+            [
+                r"^ranges\[\d+\] is (nan|-inf|-1\.0|-1\.4\d*e-45);",  # a beam planted
+                r"^ranges holds \d+ bytes, not a whole number of float32 beams",  # cut, grown
+                r"^Expected `bytes`, got `array` - at `\$\.ranges`$",  # a list, as in /1
+            ],
+            id="scan",
+        ),
+        pytest.param(
+            to_message(np.arange(BEAMS) % 7 == 0, occluded_scan()),
+            [
+                r"^occluded\[\d+\] is byte \d+;",  # a flag byte over 1
+                r"^Expected `bytes`, got `array` - at `\$\.occluded`$",
+            ],
+            id="mask",
+        ),
+    ],
+)
+def test_packed_arrays_are_damaged_in_every_way(msg: Any, expected: list[str]) -> None:
+    """``packed`` breaks a scan's float32 ranges and a mask's flags; the schema refuses
+    what it makes (or reads it as another beam count), and nothing else escapes."""
+    m = Mutator("t", 5)
+    valid = m.envelope("k", msg.TYPE, plain(msg))
+    reasons = []
+    for _ in range(200):
+        payload = m.mutate("packed", valid)
+        assert payload != msgspec.msgpack.encode(valid)
+        body = msgspec.msgpack.encode(msgspec.msgpack.decode(payload)["body"])
+        try:
+            msgspec.msgpack.decode(body, type=type(msg))
+        except msgspec.ValidationError as exc:
+            reasons.append(str(exc))
+    for pattern in expected:
+        assert any(re.search(pattern, r) for r in reasons), (pattern, sorted(set(reasons)))
 
 
 @pytest.mark.slow

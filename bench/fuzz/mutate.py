@@ -22,7 +22,13 @@ mutation                what
                         header that claims 2^32-1 (or 2^31) items and carries a few
 ``huge_real``           a field or the body replaced by a real array, map, str or bin
                         of 1k..5M bytes (some over the 4 MiB sample limit)
-``nonfinite``           1..3 floats of the body set to NaN, inf or -inf
+``nonfinite``           1..3 floats of the body set to NaN, inf or -inf (a float may be
+                        a beam of a packed float32 array such as a scan's ``ranges``)
+``packed``              a packed per-beam array (``ranges``: float32, ``occluded``: a
+                        byte per flag) damaged: bytes flipped, cut or grown to a length
+                        that is no whole number of beams, NaN, -inf or a negative
+                        planted at a beam (a flag byte of 2..255), emptied, or sent as
+                        the list ``rap.LaserScan/1`` had
 ``wrong_field_type``    a field of the envelope or the body given a value of another
                         type
 ``bad_utf8``            a string (or map key) of the envelope or body replaced by bytes
@@ -44,13 +50,29 @@ mutation                what
 
 from __future__ import annotations
 
+import math
 import random
+import struct
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Final
 
 import msgspec
+from rap_schemas import (
+    Empty,
+    KbRecord,
+    KnowledgeAccess,
+    LaserScan,
+    LidarMask,
+    PlanProposal,
+    Rejection,
+    SpinPlan,
+    StageTrace,
+    TrustOutput,
+    TrustSpecUpdate,
+    Verdict,
+)
 from rap_sdk.envelope import new_uid
 
 __all__ = ["MUTATIONS", "Mutator", "Sample"]
@@ -70,6 +92,7 @@ WEIGHTS: Final[dict[str, int]] = {
     "huge_claim": 6,
     "huge_real": 1,
     "nonfinite": 8,
+    "packed": 6,
     "wrong_field_type": 10,
     "bad_utf8": 6,
     "future_ts": 6,
@@ -92,6 +115,7 @@ _UNSEALED: Final = frozenset(
         "huge_claim",
         "huge_real",
         "nonfinite",
+        "packed",
         "wrong_field_type",
         "bad_utf8",
         "future_ts",
@@ -110,19 +134,32 @@ _INTS: Final = (0, -1, 2**31, I63, U64, -(2**63), 2**32, 2**53 + 1)
 _FLOATS: Final = (float("nan"), float("inf"), float("-inf"))
 _TIME_FIELDS: Final = frozenset({"ts", "created", "stamp", "version", "since", "until"})
 _WIRE_TYPES: Final = (
-    "rap.Empty/1",
-    "rap.LaserScan/1",
-    "rap.LidarMask/1",
-    "rap.PlanProposal/1",
-    "rap.Verdict/1",
-    "rap.KbRecord/1",
-    "rap.StageTrace/2",
-    "rap.KnowledgeAccess/1",
-    "rap.TrustOutput/1",
-    "rap.TrustSpecUpdate/1",
-    "rap.Rejection/1",
-    "rap.SpinPlan/1",
+    Empty.TYPE,
+    LaserScan.TYPE,
+    LidarMask.TYPE,
+    PlanProposal.TYPE,
+    Verdict.TYPE,
+    KbRecord.TYPE,
+    StageTrace.TYPE,
+    KnowledgeAccess.TYPE,
+    TrustOutput.TYPE,
+    TrustSpecUpdate.TYPE,
+    Rejection.TYPE,
+    SpinPlan.TYPE,
 )
+_PACKED: Final[dict[str, int]] = {"ranges": 4, "occluded": 1}
+"""Packed per-beam arrays (``bytes`` fields) by name: bytes per beam (float32 ranges,
+one byte per flag)."""
+_PACKED_DAMAGE: Final = ("flip", "plant", "ragged", "empty", "list")
+_PACKED_WEIGHTS: Final = (3, 3, 3, 1, 1)
+_BAD_BEAMS: Final = (
+    struct.pack("<f", math.nan),
+    struct.pack("<f", -math.inf),
+    struct.pack("<f", -1.0),
+    b"\x01\x00\x00\x80",  # the negative float32 nearest zero
+    b"\xff\xff\xff\xff",  # a negative NaN
+)
+"""float32 beams a scan refuses, packed."""
 _OPS: Final = ("put", "delete", "get", "history", "list", "model-put", "model-get", "nope", "")
 
 
@@ -210,6 +247,17 @@ def _rename_key(root: Any, path: list[Any], new: str) -> Any:
         return root
     renamed = {(new if k == old else k): v for k, v in holder.items()}
     return _set(root, parent, renamed)
+
+
+def _at(root: Any, path: list[Any]) -> Any:
+    for p in path:
+        root = root[p]
+    return root
+
+
+def _whole(value: Any, width: int) -> bool:
+    """``value`` is bytes of at least one whole beam of ``width`` bytes."""
+    return isinstance(value, bytes) and len(value) >= width and len(value) % width == 0
 
 
 def _nested(rng: random.Random) -> bytes:
@@ -354,8 +402,9 @@ class Mutator:
         choice = rng.randrange(4)
         if choice == 0:
             new = rng.choice([t for t in _WIRE_TYPES if t != old])
-        elif choice == 1:
-            new = old.replace("/1", "/2")
+        elif choice == 1:  # another version of the same message, older or newer
+            name, _, version = old.partition("/")
+            new = name + "/" + rng.choice([v for v in ("1", "2", "3") if v != version])
         elif choice == 2:
             new = rng.choice(["", "rap.", "/1", "rap.Nope/1"])
         else:
@@ -392,9 +441,18 @@ class Mutator:
     def _m_nonfinite(self, rng: random.Random, valid: Any, _: Any) -> Any:
         body = self._body(valid)
         floats = _leaves(body, lambda _k, v: isinstance(v, float))
-        if not floats:
+        packed = _leaves(body, lambda k, v: _PACKED.get(k) == 4 and _whole(v, 4))
+        if not floats and not packed:
             floats = [_walk(rng, body)] if isinstance(body, (dict, list)) and body else [[]]
         for _i in range(rng.randrange(1, 4)):
+            if packed and (not floats or rng.random() < 0.5):  # a beam of packed float32
+                path = rng.choice(packed)
+                data = _at(body, path)
+                at = 4 * rng.randrange(len(data) // 4)
+                (was,) = struct.unpack_from("<f", data, at)
+                beam = struct.pack("<f", rng.choice([f for f in _FLOATS if repr(f) != repr(was)]))
+                body = _set(body, path, data[:at] + beam + data[at + 4 :])
+                continue
             path = rng.choice(floats)
             old: Any = body
             for p in path:
@@ -402,6 +460,40 @@ class Mutator:
             new = rng.choice([f for f in _FLOATS if repr(f) != repr(old)])  # never a no-op
             body = _set(body, path, new)
         return self._with_body(valid, body)
+
+    def _m_packed(self, rng: random.Random, valid: Any, _: Any) -> Any:
+        body = self._body(valid)
+        fields = _leaves(body, lambda k, v: k in _PACKED and isinstance(v, bytes))
+        if not fields:  # nothing packed in this message
+            return self._m_bitflip(rng, valid, None)
+        path = rng.choice(fields)
+        old: bytes = _at(body, path)
+        width = _PACKED[path[-1]]
+        kind = rng.choices(_PACKED_DAMAGE, _PACKED_WEIGHTS)[0]
+        data = bytearray(old)
+        if kind == "flip" and data:  # 1..8 bytes flipped (each a different byte)
+            for i in rng.sample(range(len(data)), min(len(data), rng.randrange(1, 9))):
+                data[i] ^= rng.randrange(1, 256)
+        elif kind == "plant" and len(data) >= width:  # a bad value at a beam
+            beam = rng.randrange(len(data) // width)
+            bad = rng.choice(_BAD_BEAMS) if width == 4 else bytes([rng.randrange(2, 256)])
+            data[beam * width : (beam + 1) * width] = bad
+        elif kind == "ragged" and data and rng.random() < 0.5:  # cut: no whole beam count
+            cuts = [n for n in range(len(data)) if width == 1 or n % width]
+            del data[rng.choice(cuts) :]
+        elif kind == "empty" and data:  # no beams at all
+            data.clear()
+        elif kind == "list":  # a list, as version 1 of the message sent it
+            n = len(old) // width
+            items: list[Any] = (
+                list(struct.unpack(f"<{n}f", old[: 4 * n]))
+                if width == 4
+                else [bool(b) for b in old]
+            )
+            return self._with_body(valid, _set(body, path, items or [1.0]))
+        else:  # grown by 1..3 bytes (with width 4: no whole number of beams)
+            data += rng.randbytes(rng.randrange(1, 4))
+        return self._with_body(valid, _set(body, path, bytes(data)))
 
     def _m_wrong_field_type(self, rng: random.Random, valid: Any, _: Any) -> Any:
         if self.sealed and rng.random() < 0.4:

@@ -39,6 +39,7 @@ from rap_schemas import (
     TrustOutput,
     TrustSpecUpdate,
     Verdict,
+    pack_flags,
 )
 from rap_sdk.knowledge import HybridClock
 
@@ -68,7 +69,7 @@ def _scan(rng: random.Random) -> LaserScan:
 def _mask(rng: random.Random) -> LidarMask:
     n = 360
     start, width = rng.randrange(n), rng.randrange(0, 90)
-    occ = [(i - start) % n < width for i in range(n)]
+    occ = pack_flags([(i - start) % n < width for i in range(n)])
     return LidarMask(angle_min=-math.pi, angle_increment=2 * math.pi / n, occluded=occ)
 
 

@@ -12,12 +12,20 @@ plan) and every read is causal: that is RAP's contract, and it is measured with 
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
 from lidar_occlusion.planning import LegitimacyConfig, check_plan
-from rap_schemas import LaserScan, LidarMask, PlanProposal, SpinCommand, SpinPlan, Verdict
+from rap_schemas import (
+    LaserScan,
+    LidarMask,
+    PlanProposal,
+    SpinCommand,
+    SpinPlan,
+    Verdict,
+    pack_flags,
+)
 from rap_sdk import Context, Node
 from rap_sdk.gate import ApprovalGate, legitimate, propose
 
@@ -37,7 +45,7 @@ def mask_of(scan: LaserScan) -> LidarMask:
     return LidarMask(
         angle_min=scan.angle_min,
         angle_increment=scan.angle_increment,
-        occluded=[not math.isfinite(r) for r in scan.ranges],
+        occluded=pack_flags(~np.isfinite(np.asarray(scan.values()))),
         frame_id=scan.frame_id,
     )
 

@@ -20,7 +20,7 @@ import anyio
 from knowledge.app import open_service
 from knowledge.config import KnowledgeConfig
 from lidar_occlusion.deploy import local_deployment
-from rap_schemas import LaserScan, SpinPlan, keys
+from rap_schemas import LaserScan, SpinPlan, keys, pack_ranges
 from rap_sdk import Context, MemoryFabric, Node, NodeRuntime, ZenohConfig, ZenohFabric, run_nodes
 from rap_sdk.fabric import free_port
 
@@ -50,7 +50,7 @@ def make_scan(seed: int = 1) -> LaserScan:
         angle_increment=2 * math.pi / 360,
         range_min=0.1,
         range_max=12.0,
-        ranges=ranges,
+        ranges=pack_ranges(ranges),
     )
 
 

@@ -9,7 +9,7 @@ import msgspec
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
-from rap_schemas import LaserScan
+from rap_schemas import LaserScan, pack_ranges
 from rap_schemas.limits import MAX_DEPTH, DecodeRejected, SafeDecoder, check_depth, decode_failure
 from rap_schemas.yamlconf import YamlError, parse_yaml, read_text_file
 
@@ -56,10 +56,10 @@ def test_typed_message_rejects_nan_via_schema() -> None:
             "angle_increment": 0.1,
             "range_min": 0.1,
             "range_max": 5.0,
-            "ranges": [math.nan],
+            "ranges": pack_ranges([math.nan]),
         }
     )
-    with pytest.raises(DecodeRejected, match=r"\$\.ranges\[0\]"):
+    with pytest.raises(DecodeRejected, match=r"ranges\[0\] is nan"):
         decode(bad)
 
 

@@ -15,6 +15,7 @@ from rap_schemas import (
     SpinCommand,
     SpinPlan,
     by_type,
+    pack_ranges,
 )
 from rap_schemas.export import render
 
@@ -70,7 +71,7 @@ def test_inf_ranges_survive_msgpack() -> None:
         angle_increment=math.radians(1),
         range_min=0.1,
         range_max=12.0,
-        ranges=[1.0, math.inf, 0.5],
+        ranges=pack_ranges([1.0, math.inf, 0.5]),
     )
     assert msgspec.msgpack.decode(msgspec.msgpack.encode(scan), type=LaserScan) == scan
 

@@ -26,7 +26,7 @@ from lidar_occlusion.planning import (
     plan_for,
     rotations,
 )
-from rap_schemas import LaserScan, PlanProposal, SpinCommand, SpinPlan
+from rap_schemas import LaserScan, PlanProposal, SpinCommand, SpinPlan, pack_ranges
 
 N = 360
 INC = 2 * math.pi / N
@@ -42,7 +42,7 @@ def scan(ranges: np.ndarray) -> LaserScan:
         angle_increment=INC,
         range_min=0.1,
         range_max=12.0,
-        ranges=ranges.tolist(),
+        ranges=pack_ranges(ranges),
     )
 
 

@@ -19,6 +19,8 @@ from rap_schemas import (
     StageTrace,
     Twist,
     keys,
+    pack_flags,
+    pack_ranges,
 )
 from rap_sdk import (
     ConfigError,
@@ -54,7 +56,7 @@ def scan(n: int = 4, *, stamp: int = 1) -> LaserScan:
         angle_increment=2 * math.pi / n,
         range_min=0.1,
         range_max=12.0,
-        ranges=[1.0] * (n - 1) + [math.inf],
+        ranges=pack_ranges([1.0] * (n - 1) + [math.inf]),
     )
 
 
@@ -71,7 +73,9 @@ def two_stage_loop() -> tuple[Node, Node, list[Any]]:
     @analyse.on_event("new-data")
     async def detect(ctx: Context) -> None:
         seen.append(("analyse", ctx.envelope.source))
-        mask = LidarMask(angle_min=-math.pi, angle_increment=1.0, occluded=[False, True])
+        mask = LidarMask(
+            angle_min=-math.pi, angle_increment=1.0, occluded=pack_flags([False, True])
+        )
         await ctx.emit("anomaly", mask)
 
     return monitor, analyse, seen
@@ -92,7 +96,7 @@ async def test_a_cycle_flows_with_cycle_and_cause(setup: dict[str, Any]) -> None
         assert new_data.cause == sent.uid
         assert anomaly.envelope.cycle == sent.uid
         assert anomaly.envelope.cause == new_data.uid
-        assert anomaly.decode(LidarMask).occluded == [False, True]
+        assert list(anomaly.decode(LidarMask).flags()) == [False, True]
         assert seen == [("monitor", 42), ("analyse", "monitor")]
         # one record per handler call, published before what its handler emitted
         for node in ("monitor", "analyse"):
@@ -133,7 +137,7 @@ async def test_bad_samples_are_rejected_and_the_node_carries_on(setup: dict[str,
                 "angle_increment": "wide",
                 "range_min": 0.1,
                 "range_max": 1.0,
-                "ranges": [],
+                "ranges": b"",
             }
         )
         p, _ = h.sealer.seal(data, LaserScan.TYPE, body)
@@ -177,7 +181,7 @@ async def test_rejection_reasons_name_the_path_and_type() -> None:
                 s = await log.get()
             reasons.append(msgspec.msgpack.decode(_body(s.payload), type=Rejection).reason)
         assert "$.stamp" in reasons[0]
-        assert "expected type rap.LaserScan/1, got 'rap.Twist/1'" in reasons[1]
+        assert "expected type rap.LaserScan/2, got 'rap.Twist/1'" in reasons[1]
         assert got == []
 
 
@@ -390,4 +394,4 @@ async def test_a_rejection_names_the_sender_and_type_when_it_can() -> None:
         rec = await h.expect(keys.Kind.LOG, "n")
         rejection = rec.decode(Rejection)
         assert (rejection.source, rejection.type) == ("harness", Twist.TYPE)
-        assert "expected type rap.LaserScan/1" in rejection.reason
+        assert "expected type rap.LaserScan/2" in rejection.reason

@@ -94,6 +94,8 @@ SCHEMAS = {
     "Verdict",
     "by_type",
     "keys",
+    "pack_flags",
+    "pack_ranges",
     "ComponentSpec",
     "ComputeNode",
     "DeploymentPlan",

@@ -10,7 +10,7 @@ import anyio
 import msgspec
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from rap_schemas import MESSAGES, Envelope, LaserScan, keys
+from rap_schemas import MESSAGES, Envelope, LaserScan, keys, pack_ranges
 from rap_sdk import Context, MemoryFabric, Node, NodeRuntime
 from rap_sdk.fabric import Sample
 
@@ -29,6 +29,9 @@ msgpack_values: st.SearchStrategy[Any] = st.recursive(
     max_leaves=12,
 )
 
+ragged = st.binary(min_size=1, max_size=3)
+"""Appended to packed ranges: a length that is not a multiple of 4 (a float32 beam)."""
+
 good_scans = st.fixed_dictionaries(  # scan-shaped, in and out of the schema's bounds
     {
         "stamp": st.integers(0, 2**62),
@@ -37,7 +40,12 @@ good_scans = st.fixed_dictionaries(  # scan-shaped, in and out of the schema's b
         "angle_increment": st.floats(),
         "range_min": st.floats(),
         "range_max": st.floats(),
-        "ranges": st.lists(st.floats(-1, math.inf) | st.just(math.nan), max_size=8),
+        "ranges": st.one_of(  # packed float32, valid or not (NaN, negative), or any bytes
+            st.lists(st.floats(-1, math.inf, width=32) | st.just(math.nan), max_size=8).map(
+                pack_ranges
+            ),
+            st.binary(max_size=33),
+        ),
     }
 )
 
@@ -67,7 +75,7 @@ def deep(depth: int) -> bytes:
 
 hostile_bodies = st.one_of(
     st.integers(1, 5000).map(deep),
-    st.integers(1, 5000).map(lambda d: b"\x81\xa6ranges" + deep(d)),  # where a list goes
+    st.integers(1, 5000).map(lambda d: b"\x81\xa6ranges" + deep(d)),  # where bytes go
     st.integers(1, 5000).map(lambda d: b"\x81\xa1z" + deep(d)),  # an unknown field
     st.sampled_from([b"\xdd\xff\xff\xff\xff", b"\xdf\xff\xff\xff\xff", b"\xc6\xff\xff\xff\xff"]),
     st.fixed_dictionaries(  # NaN, inf, -inf and wrong types where a scan has numbers
@@ -78,7 +86,15 @@ hostile_bodies = st.one_of(
             "angle_increment": st.floats(),
             "range_min": st.floats(),
             "range_max": st.floats(),
-            "ranges": st.lists(st.sampled_from([math.nan, -math.inf, -1.0, 1.0, math.inf])),
+            "ranges": st.one_of(
+                st.lists(st.sampled_from([math.nan, -math.inf, -1.0, 1.0, math.inf])).map(
+                    pack_ranges
+                ),
+                st.tuples(st.lists(st.just(1.0)).map(pack_ranges), ragged).map(
+                    lambda parts: parts[0] + parts[1]
+                ),
+                st.lists(st.floats()),  # a list, as rap.LaserScan/1 sent it
+            ),
         }
     ).map(msgspec.msgpack.encode),
 )
@@ -136,7 +152,7 @@ async def _feed(batch: list[bytes]) -> None:
                 angle_increment=1.0,
                 range_min=0.0,
                 range_max=1.0,
-                ranges=[],
+                ranges=b"",
             )
         )
         payload, _ = rt.sealer.seal(KEY, LaserScan.TYPE, good)

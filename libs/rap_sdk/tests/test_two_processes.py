@@ -11,7 +11,7 @@ from pathlib import Path
 
 import anyio
 import pytest
-from rap_schemas import LaserScan, keys
+from rap_schemas import LaserScan, keys, pack_ranges
 from rap_sdk import LivelinessChange
 from rap_sdk.testing import Harness
 
@@ -41,7 +41,7 @@ async def test_a_node_in_another_process_round_trips_and_stops_on_sigterm() -> N
                     angle_increment=0.1,
                     range_min=0.1,
                     range_max=12.0,
-                    ranges=[1.0, math.inf],
+                    ranges=pack_ranges([1.0, math.inf]),
                 )
                 ping = await h.publish("ping", scan)
                 rec = await h.expect_data("pong", after=after)

@@ -29,6 +29,8 @@ from .lidar import (
     SpinCommand,
     SpinPlan,
     Twist,
+    pack_flags,
+    pack_ranges,
 )
 from .maplek import (
     NEW_PLAN,
@@ -108,5 +110,7 @@ __all__ = [
     "keys",
     "limits",
     "load_plan",
+    "pack_flags",
+    "pack_ranges",
     "parse_plan",
 ]

@@ -13,7 +13,7 @@ import anyio
 import pytest
 from knowledge.app import open_service
 from knowledge.config import KnowledgeConfig
-from rap_schemas import LaserScan, StageTrace, keys
+from rap_schemas import LaserScan, StageTrace, keys, pack_ranges
 from rap_schemas.knowledge import EPOCH_MS
 from rap_sdk import Context, KnowledgeError, MemoryBus, MemoryFabric, Node, run_nodes
 from rap_sdk.envelope import Sealer
@@ -31,7 +31,7 @@ def scan(stamp: int) -> LaserScan:
         angle_increment=0.1,
         range_min=0.1,
         range_max=12.0,
-        ranges=[1.0],
+        ranges=pack_ranges([1.0]),
     )
 
 

@@ -10,7 +10,7 @@ import anyio
 import pytest
 from knowledge.app import open_service
 from knowledge.config import KnowledgeConfig
-from rap_schemas import LaserScan, LidarMask, keys
+from rap_schemas import LaserScan, LidarMask, keys, pack_ranges
 from rap_sdk import (
     Context,
     KnowledgeClient,
@@ -40,7 +40,7 @@ def scan(stamp: int) -> LaserScan:
         angle_increment=0.1,
         range_min=0.1,
         range_max=12.0,
-        ranges=[1.0, math.inf],
+        ranges=pack_ranges([1.0, math.inf]),
     )
 
 
@@ -72,7 +72,7 @@ async def test_a_colocated_write_of_the_wrong_type_is_refused_by_the_reader() ->
     ):
         await w.write("laser_scan", scan(1))
         assert (await r.read("laser_scan", LaserScan)).stamp == 1
-        await w.write("laser_scan", LidarMask(angle_min=0, angle_increment=1, occluded=[]))
+        await w.write("laser_scan", LidarMask(angle_min=0, angle_increment=1, occluded=b""))
         assert (await r.read("laser_scan", LaserScan)).stamp == 1  # kept the good one
         assert r.rejections.total >= 1
 
@@ -138,7 +138,7 @@ async def test_a_local_object_of_another_type_is_decoded_and_rejected() -> None:
         MemoryFabric() as fabric,
         run_nodes([sender, receiver], fabric=fabric, system=SYSTEM) as group,
     ):
-        mask = LidarMask(angle_min=0, angle_increment=1, occluded=[])
+        mask = LidarMask(angle_min=0, angle_increment=1, occluded=b"")
         await group["sender"].send(keys.data(SYSTEM, "scan"), mask)
         rt = group["receiver"]
         await settled(lambda: rt.stats.rejected == 1)

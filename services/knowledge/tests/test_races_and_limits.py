@@ -15,7 +15,16 @@ from knowledge.adapters.sqlite_store import SqliteStore
 from knowledge.app import open_service
 from knowledge.config import HistoryRule, KnowledgeConfig
 from knowledge.core import Retention
-from rap_schemas import Envelope, KbPut, KbRecord, KbReply, LidarMask, Rejection, keys
+from rap_schemas import (
+    Envelope,
+    KbPut,
+    KbRecord,
+    KbReply,
+    LidarMask,
+    Rejection,
+    keys,
+    pack_flags,
+)
 from rap_schemas.knowledge import EPOCH_MS
 from rap_sdk import MemoryBus, MemoryFabric, Sealer
 from rap_sdk.knowledge import HybridClock, KnowledgeClient, KnowledgeError
@@ -267,13 +276,13 @@ async def test_a_record_of_the_wrong_type_is_refused_by_a_replica_that_reads_the
     reads the key as, and keeps the last good one."""
     async with deployment(kind) as d:
         reader, writer = await d.client("reader"), await d.client("writer")
-        good = LidarMask(angle_min=0.0, angle_increment=0.1, occluded=[True, False])
+        good = LidarMask(angle_min=0.0, angle_increment=0.1, occluded=pack_flags([True, False]))
         await writer.write("mask", good, durable=True)
         assert await reader.read("mask", LidarMask) == good
         assert d.service is not None
         fabric, forger = d.service.fabric, Sealer("forger")
         key = keys.kb("t", "mask")
-        bad = {"angle_min": 99.0, "angle_increment": 0.1, "occluded": [True]}
+        bad = {"angle_min": 99.0, "angle_increment": 0.1, "occluded": pack_flags([True])}
         for value in (bad, "not a mask", [1, 2, 3]):
             payload, _ = forger.seal_message(key, record("mask", writer.clock.next(), value))
             await fabric.publish(key, payload)
@@ -281,6 +290,6 @@ async def test_a_record_of_the_wrong_type_is_refused_by_a_replica_that_reads_the
             while reader.rejections.total < 3:
                 await anyio.wait_all_tasks_blocked()
         assert await reader.read("mask", LidarMask) == good
-        newer = LidarMask(angle_min=0.5, angle_increment=0.1, occluded=[False])
+        newer = LidarMask(angle_min=0.5, angle_increment=0.1, occluded=pack_flags([False]))
         v = await writer.write("mask", newer)
         assert await reader.read("mask", LidarMask, min_version=v) == newer

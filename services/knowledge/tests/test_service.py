@@ -81,7 +81,7 @@ async def test_a_value_of_the_wrong_type_names_the_path(kind: str) -> None:
     async with deployment(kind) as d:
         w = await d.client("w")
         await w.write(
-            "mask", {"angle_min": 0.0, "angle_increment": "x", "occluded": []}, durable=True
+            "mask", {"angle_min": 0.0, "angle_increment": "x", "occluded": b""}, durable=True
         )
         with pytest.raises(KnowledgeTypeError, match=r"\$\.angle_increment"):
             await w.read("mask", LidarMask)

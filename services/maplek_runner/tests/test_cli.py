@@ -11,7 +11,7 @@ from pathlib import Path
 
 import anyio
 import pytest
-from rap_schemas import LaserScan, keys
+from rap_schemas import LaserScan, keys, pack_ranges
 from rap_sdk.testing import Harness, free_port
 
 from services.maplek_runner.tests.plans import PLAN, REPO
@@ -101,7 +101,7 @@ async def test_the_runner_serves_its_share_over_zenoh_and_stops_on_sigterm(
                     angle_increment=0.1,
                     range_min=0.1,
                     range_max=12.0,
-                    ranges=[1.0, math.inf],
+                    ranges=pack_ranges([1.0, math.inf]),
                 )
                 ping = await h.publish("ping", scan)
                 pong = await h.expect_data("pong")

@@ -9,7 +9,7 @@ from functools import partial
 import anyio
 import pytest
 from maplek_runner import LoadError, fabric_config, run_plan
-from rap_schemas import LaserScan, keys, parse_plan
+from rap_schemas import LaserScan, keys, pack_ranges, parse_plan
 from rap_sdk import NodeGroup, ZenohConfig
 from rap_sdk.testing import Harness
 
@@ -25,7 +25,7 @@ SCAN = LaserScan(
     angle_increment=0.1,
     range_min=0.1,
     range_max=12.0,
-    ranges=[1.0, math.inf],
+    ranges=pack_ranges([1.0, math.inf]),
 )
 
 

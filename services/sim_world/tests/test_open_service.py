@@ -82,7 +82,7 @@ async def test_open_service_runs_a_named_world_for_its_duration() -> None:
     assert summary.scans_published == 10  # 2 s at 5 Hz
     assert len(scans) == 10
     for rec in scans:  # decoding checks every bound of the wire schema
-        assert len(rec.decode(LaserScan).ranges) == 360
+        assert len(rec.decode(LaserScan).values()) == 360
     assert summary.clock == "lockstep"
     assert [r.name for r in summary.robots] == ["tb1"]
 

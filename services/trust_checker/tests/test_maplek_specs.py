@@ -34,6 +34,7 @@ from rap_schemas import (
     TrustSpecStatus,
     Verdict,
     keys,
+    pack_flags,
 )
 from rap_sdk import Context, Fabric, MemoryFabric, Node
 from rap_sdk.gate import PLAN_REJECTED, ApprovalGate, TrustGuard
@@ -179,7 +180,7 @@ def hasty_monitor() -> Node:
 
     @mon.on_data("tb1/scan")
     async def on_scan(ctx: Context, s: LaserScan) -> None:
-        occluded = [not math.isfinite(r) for r in s.ranges]
+        occluded = pack_flags([not math.isfinite(r) for r in s.values()])
         mask = LidarMask(
             angle_min=s.angle_min,
             angle_increment=s.angle_increment,

@@ -26,7 +26,7 @@ from collections import deque
 import msgspec
 import numpy as np
 import numpy.typing as npt
-from rap_schemas import LaserScan, LidarMask
+from rap_schemas import LaserScan, LidarMask, pack_flags
 
 __all__ = [
     "AnalysisConfig",
@@ -68,8 +68,13 @@ def signed_angles(angle_min: float, angle_increment: float, n: int) -> npt.NDArr
 
 
 def raw_mask(ranges: npt.ArrayLike) -> Mask:
-    """True where a beam has no finite return (``inf`` or ``nan``)."""
-    return ~np.isfinite(np.asarray(ranges, dtype=np.float64))
+    """True where a beam has no finite return (``inf`` or ``nan``). ``ranges`` may be a
+    float array of any precision (``LaserScan.values()`` is float32, read in place)."""
+    values = np.asarray(ranges)
+    if values.dtype.kind != "f":
+        values = values.astype(np.float64)
+    mask: Mask = ~np.isfinite(values)
+    return mask
 
 
 def _shifts(mask: Mask, k: int, *, any_: bool) -> Mask:
@@ -127,7 +132,7 @@ class MaskWindow:
 
 def analyse_scan(scan: LaserScan, window: MaskWindow, cfg: AnalysisConfig) -> Mask:
     """Push ``scan``'s raw mask into ``window``; the cleaned, banded occlusion mask."""
-    window.push(raw_mask(scan.ranges))
+    window.push(raw_mask(scan.values()))
     occluded = window.probability() > cfg.threshold
     k = round(cfg.radius / scan.angle_increment) if scan.angle_increment > 0 else 0
     occluded = clean(occluded, k)
@@ -157,6 +162,6 @@ def to_message(mask: Mask, scan: LaserScan) -> LidarMask:
     return LidarMask(
         angle_min=scan.angle_min,
         angle_increment=scan.angle_increment,
-        occluded=mask.tolist(),
+        occluded=pack_flags(mask),
         frame_id=scan.frame_id,
     )

@@ -150,9 +150,7 @@ def build(
             )
             handling = False
         # the planned mask of a lost plan is not in force: judge against no plan at all
-        planned = (
-            None if planned_msg is None or lost else np.asarray(planned_msg.occluded, dtype=bool)
-        )
+        planned = None if planned_msg is None or lost else np.asarray(planned_msg.flags())
         msg = to_message(mask, scan)
         await ctx.kb.write(LIDAR_MASK, msg)
         if is_anomaly(mask, planned, scan.angle_increment, handling, cfg):
@@ -175,7 +173,7 @@ def build(
     async def make_plan(ctx: Context) -> None:
         cfg: PlanConfig = ctx.config
         mask = await ctx.kb.read(LIDAR_MASK, LidarMask)
-        spin = plan_for(mask.occluded, mask.angle_min, mask.angle_increment, cfg)
+        spin = plan_for(np.asarray(mask.flags()), mask.angle_min, mask.angle_increment, cfg)
         st.previous = await ctx.kb.read(PLANNED_MASK, LidarMask, default=None)
         st.attempts = 0
         await ctx.kb.write(PLANNED_MASK, mask)

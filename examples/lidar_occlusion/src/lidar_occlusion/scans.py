@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from rap_schemas import LaserScan
+from rap_schemas import LaserScan, pack_ranges
 
 __all__ = ["BEAMS", "occluded_scan"]
 
@@ -30,5 +30,5 @@ def occluded_scan(
         angle_increment=_INC,
         range_min=0.1,
         range_max=12.0,
-        ranges=r.tolist(),
+        ranges=pack_ranges(r),
     )

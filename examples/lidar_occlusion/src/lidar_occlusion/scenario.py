@@ -76,7 +76,7 @@ class Observer:
             return
         s = ev.scan
         if self._band is None:
-            angles = signed_angles(s.angle_min, s.angle_increment, len(s.ranges))
+            angles = signed_angles(s.angle_min, s.angle_increment, s.beams)
             self._band = ignore_band(angles, self.cfg.ignore_from)
         self.by_cycle[env.uid] = len(self.scans)
         self.scans.append(_Scan(ev.t, time.perf_counter_ns(), ev.occluded & ~self._band))
@@ -179,7 +179,7 @@ def metrics(
             latencies.append(hit - i)
     false = overreach = 0
     for idx, _, mask in obs.anomalies:
-        flagged = np.asarray(mask.occluded, dtype=bool)
+        flagged = np.asarray(mask.flags())
         if idx < 0 or flagged.size != scans[idx].visible.size:
             continue
         truth = np.zeros_like(flagged)

@@ -5,7 +5,7 @@ checker) counts each rejection by reason and logs it rate-limited: the first on 
 once, then at most one line per interval with how many came since.
 
     rejections = Rejections("analysis", log)
-    rec = rejections.reject(key, "invalid rap.LaserScan/1 body: ...", source="x")
+    rec = rejections.reject(key, "invalid rap.LaserScan/2 body: ...", source="x")
     if rec is not None:                       # due: publish it on rap/<system>/log/<node>
         await publish(rec)
     rejections.by_reason                      # Counter: reason kind -> count

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 import pymunk
-from rap_schemas import LaserScan, Odometry, Pose2D, SpinPlan, Twist
+from rap_schemas import LaserScan, Odometry, Pose2D, SpinPlan, Twist, pack_ranges
 
 from .executor import PlanExecutor
 from .geometry import cast_rays, scene_of
@@ -208,7 +208,7 @@ class Simulation:
             angle_increment=lidar.angle_increment,
             range_min=lidar.range_min,
             range_max=lidar.range_max,
-            ranges=ranges.tolist(),
+            ranges=pack_ranges(ranges),
             scan_time=self.scan_period,
         )
         return ScanEvent(name, self.t, scan, occluded)

@@ -97,7 +97,7 @@ class RerunLog:
         path.append((pose.x, pose.y))
         rec.log(f"{base}/path", rr.LineStrips2D([path]))
         angles = pose.theta + sim.beam_angles
-        ranges = np.asarray(ev.scan.ranges)
+        ranges = np.asarray(ev.scan.values())
         hit = np.isfinite(ranges)
         rec.log(
             f"{base}/scan",
