@@ -45,9 +45,8 @@ class Clock(Protocol):
 
 
 class SystemClock:
-    @staticmethod
-    def time_ns() -> int:
-        return time.time_ns()
+    time_ns = staticmethod(time.time_ns)
+    """UTC wall clock, integer nanoseconds (``time.time_ns`` itself: no Python frame)."""
 
 
 class _UidSource:
@@ -165,7 +164,22 @@ class Sealer:
         the envelope object itself; the bytes are made once, when first needed."""
         if message is None:
             message = _EMPTY
-        return Outgoing(self._envelope(key, message.TYPE, message, cycle, cause, ctx), _encode)
+        seqs = self._seq
+        seq = seqs.get(key, 0)
+        seqs[key] = seq + 1
+        ts = self._now()
+        env = OutgoingEnvelope(
+            uid=new_uid(ts),
+            ts=ts,
+            source=self.source,
+            seq=seq,
+            type=message.TYPE,
+            body=message,
+            cycle=cycle,
+            cause=cause,
+            ctx=ctx or {},
+        )
+        return Outgoing(env, _encode)
 
     def seal(
         self,

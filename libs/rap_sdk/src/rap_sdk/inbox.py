@@ -119,11 +119,29 @@ class Inbox(Generic[T]):
     def put_nowait(self, item: T) -> bool:
         """Add without waiting when the policy allows it now. False only when the item
         must wait for room (FIFO with ``block``, full): then ``await put(item)``."""
+        if self._closed:
+            return True  # dropped, as offer() drops it: nobody will take it
         policy = self.policy
-        if policy.block and policy.overflow is Overflow.FIFO:
-            if self._full(self._size(item) if self._size is not None else 0):
+        size = self._size
+        n = size(item) if size is not None else 0
+        items = self._items
+        limit = policy.max_bytes
+        if len(items) >= policy.capacity or (
+            limit is not None and self._bytes + n > limit and items
+        ):
+            if policy.block and policy.overflow is Overflow.FIFO:
                 return False
-        self.offer(item)
+            self.offer(item)
+            return True
+        items.append(item)  # the usual case, offer() inlined
+        self._bytes += n
+        st = self.stats
+        st.accepted += 1
+        if len(items) > st.high_water:
+            st.high_water = len(items)
+        g = self._getter
+        if g is not None and not g.done():
+            g.set_result(None)
         return True
 
     async def put(self, item: T, *, timeout: float | None = None) -> bool:
@@ -191,8 +209,11 @@ class Inbox(Generic[T]):
                 await self._getter
             finally:
                 self._getter = None
-        item = self._pop()
-        self._wake_putter()
+        item = self._items.popleft()
+        if self._size is not None:
+            self._bytes -= self._size(item)
+        if self._putters:
+            self._wake_putter()
         return item
 
     def _wake_putter(self) -> None:

@@ -124,11 +124,15 @@ class HybridClock:
 
     def __init__(self, writer: str, now_ms: Callable[[], int] | None = None) -> None:
         self.tag = writer_tag(writer)
-        self._now_ms = now_ms or (lambda: time.time_ns() // 1_000_000)
+        self._now_ms = now_ms
         self._last = 0
 
+    def _ms(self) -> int:
+        return self._now_ms() if self._now_ms is not None else time.time_ns() // 1_000_000
+
     def next(self) -> int:
-        wall = (self._now_ms() - EPOCH_MS) << 20
+        now = self._now_ms
+        wall = ((now() if now is not None else time.time_ns() // 1_000_000) - EPOCH_MS) << 20
         base = max(wall, (self._last >> 8 << 8) + (1 << 8))
         self._last = base | self.tag
         return self._last
@@ -137,7 +141,7 @@ class HybridClock:
         """Move ahead of ``version``, unless it claims a time more than ``MAX_DRIFT_MS``
         ahead of this clock (a broken writer must not drag every clock into the
         future; the service refuses such versions too)."""
-        if version > self._last and (version >> 20) <= (self._now_ms() - EPOCH_MS + MAX_DRIFT_MS):
+        if version > self._last and (version >> 20) <= (self._ms() - EPOCH_MS + MAX_DRIFT_MS):
             self._last = version >> 8 << 8 | self.tag
 
 
@@ -154,7 +158,18 @@ class Versioned(msgspec.Struct, frozen=True):
 
 
 class _Replica:
-    __slots__ = ("_changed", "decoded", "key", "ready", "record", "seen_tags", "sub", "types")
+    __slots__ = (
+        "_changed",
+        "caught_up",
+        "decoded",
+        "key",
+        "ready",
+        "record",
+        "seen_tags",
+        "sub",
+        "types",
+        "version",
+    )
 
     def __init__(self, key: str, seen_tags: set[int]) -> None:
         self.key = key
@@ -163,16 +178,16 @@ class _Replica:
         """The types this client reads the key as: a record from elsewhere whose value is
         not one of them is refused (the replica keeps its last good value)."""
         self.record: KbRecord | None = None
+        self.version = 0
+        """``record.version`` (0: no record)."""
         self.decoded: dict[Any, Any] = {}
         self._changed: anyio.Event | None = None
         """Made when someone waits for a newer record (most offers have no waiter)."""
         self.ready = anyio.Event()
         """Set once the replica has caught up (concurrent first readers wait for it)."""
+        self.caught_up = False
+        """``ready`` is set (a flag: the read path checks it every time)."""
         self.sub: Subscription | None = None
-
-    @property
-    def version(self) -> int:
-        return self.record.version if self.record is not None else 0
 
     async def changed(self) -> None:
         """Wait for the next record adopted."""
@@ -185,6 +200,7 @@ class _Replica:
             return False
         self.seen_tags.add(rec.version & 0xFF)
         self.record = rec
+        self.version = rec.version
         self.decoded = decoded if decoded is not None else {}
         changed = self._changed
         if changed is not None:
@@ -395,13 +411,24 @@ class KnowledgeClient:
                 "too-large",
             )
         rec = self._record(key, msgspec.Raw(encoded), False)
-        return await self._submit(rec, durable, expect, value)
+        if durable or expect is not None:
+            return await self._submit(rec, durable, expect, value)
+        stream = self._kb_keys.get(key) or self._kb_key(key)
+        out = self.sealer.seal_out(stream, rec)
+        out.group = self._group
+        await self.fabric.publish(stream, out)
+        refused = self._adopt(rec, value)
+        if refused:
+            for other, rejection in refused:
+                await other._rejected(rejection)
+        return rec.version
 
     async def delete(self, key: str, *, durable: bool = False, expect: int | None = None) -> int:
         return await self._submit(self._record(key, _NIL, True), durable, expect, None)
 
     def _record(self, key: str, value: msgspec.Raw, deleted: bool) -> KbRecord:
-        self._check_key(key)
+        if key not in self._valid:
+            self._check_key(key)
         return KbRecord(
             key=key,
             version=self.clock.next(),
@@ -428,12 +455,24 @@ class KnowledgeClient:
             out = self.sealer.seal_out(key, rec)
             out.group = self._group
             await self.fabric.publish(key, out)
+        refused = self._adopt(rec, value)
+        if refused:
+            for other, rejection in refused:
+                await other._rejected(rejection)
+        return rec.version
+
+    def _adopt(self, rec: KbRecord, value: Any) -> list[tuple[KnowledgeClient, Rejection]] | None:
+        """Hand a record this client wrote to the co-located clients' replicas and to its
+        own; the rejections (due) of co-located clients that refused it are returned,
+        for the writer to publish."""
         shared = value is not None and _shareable(value)
+        refused: list[tuple[KnowledgeClient, Rejection]] | None = None
         for other in self._group.clients:
             if other is not self and rec.key in other._replicas:
-                refused = other._handed(rec, value if shared else None)
-                if refused is not None:
-                    await other._rejected(refused)
+                rejection = other._handed(rec, value if shared else None)
+                if rejection is not None:
+                    refused = refused or []
+                    refused.append((other, rejection))
         rep = self._replicas.get(rec.key)
         if rep is not None:
             rep.offer(rec, {type(value): value} if shared and type(value) in rep.types else None)
@@ -443,7 +482,7 @@ class KnowledgeClient:
             own[rec.key] = rec
             if len(own) > OWN_WRITES:  # bounded: the oldest falls back to the service
                 del own[next(iter(own))]
-        return rec.version
+        return refused
 
     # -- reading ---------------------------------------------------------------------------
 
@@ -485,7 +524,7 @@ class KnowledgeClient:
         alive is not waited for. A missing or deleted key returns ``default``, a
         version that does not come raises ``KnowledgeError``."""
         rep = self._replicas.get(key)
-        if rep is not None and rep.version >= min_version and rep.ready.is_set():
+        if rep is not None and rep.version >= min_version and rep.caught_up:
             rec = rep.record  # here already: no wait, nothing to ask
             if rec is not None and not rec.deleted:
                 hit = rep.decoded.get(type, _MISSING)
@@ -510,6 +549,17 @@ class KnowledgeClient:
             if rep.record is rec:
                 rep.decoded[type] = hit
         return hit
+
+    def value_here(self, key: str, type: Any, min_version: int = 0) -> Any:
+        """The value of ``key`` read as ``type`` when this client has it at hand (at
+        least ``min_version``, already read or handed over as that type): what
+        :meth:`read` would return at once. Else ``_MISSING`` (then :meth:`read`)."""
+        rep = self._replicas.get(key)
+        if rep is not None and rep.caught_up:
+            rec = rep.record
+            if rec is not None and rec.version >= min_version and not rec.deleted:
+                return rep.decoded.get(type, _MISSING)
+        return _MISSING
 
     def known_version(self, key: str) -> int:
         """The version of ``key`` this client knows (0: none or not replicated)."""
@@ -583,6 +633,7 @@ class KnowledgeClient:
                     rec = known.record if known is not None else other._own.get(key)
                     if rec is not None and rec.version > rep.version:
                         rep.offer(rec)
+            rep.caught_up = True
             rep.ready.set()
         return rep
 

@@ -17,6 +17,7 @@ import asyncio
 import logging
 import signal
 import time
+from collections import deque
 from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
@@ -67,6 +68,49 @@ SEND_TIMEOUT = 1.0
 inbox before that node is skipped (counted and logged): local nodes that send to each
 other in a cycle (plan -> legitimate -> plan-rejected -> plan) would otherwise wait for
 each other for ever once their inboxes are full."""
+
+
+class Turn:
+    """A node's turn to run a handler (one at a time): a lock that a caller may take at
+    once when it is free (direct dispatch: ``held = True``, no await), and that
+    consumer tasks wait for in order. Released, it is handed to the first waiter that
+    still waits, so a direct call never overtakes a consumer that was waiting."""
+
+    __slots__ = ("_waiters", "held")
+
+    def __init__(self) -> None:
+        self.held = False
+        self._waiters: deque[asyncio.Future[None]] = deque()
+
+    def locked(self) -> bool:
+        return self.held
+
+    async def __aenter__(self) -> None:
+        if not self.held:
+            self.held = True
+            return
+        waiter: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        self._waiters.append(waiter)
+        try:
+            await waiter
+        except BaseException:
+            if waiter.done() and not waiter.cancelled():
+                self.release()  # handed the turn, then cancelled: pass it on
+            elif waiter in self._waiters:
+                self._waiters.remove(waiter)
+            raise
+
+    async def __aexit__(self, *exc: object) -> None:
+        self.release()
+
+    def release(self) -> None:
+        waiters = self._waiters
+        while waiters:
+            waiter = waiters.popleft()
+            if not waiter.done():
+                waiter.set_result(None)  # handed over: it stays held
+                return
+        self.held = False
 
 
 @dataclass(slots=True)
@@ -147,12 +191,6 @@ class Context:
             self._kb = ContextKnowledge(self)
         return self._kb
 
-    def _ctx_out(self) -> dict[str, int] | None:
-        inherited, written = self.envelope.ctx, self.written
-        if not written:
-            return inherited or None
-        return {**inherited, **written} if inherited else dict(written)
-
     @property
     def node(self) -> Node:
         return self._rt.node
@@ -170,12 +208,6 @@ class Context:
         """The runtime's clock (wall time, ns): stamp plans, judge freshness."""
         return self._rt.clock
 
-    def _sent(self, key: str) -> None:
-        if self.sent is None:
-            self.sent = [key]
-        else:
-            self.sent.append(key)
-
     async def emit(self, name: str, message: Message | None = None) -> OutgoingEnvelope:
         """Emit event ``name`` in this cycle, caused by the triggering envelope. It is
         sealed now (with the knowledge versions written so far) and leaves when the
@@ -192,10 +224,18 @@ class Context:
         return self._queue(key, message)
 
     def _queue(self, key: str, message: Message | None) -> OutgoingEnvelope:
-        self._sent(key)
-        out = self._rt.sealer.seal_out(
-            key, message, cycle=self.cycle, cause=self.envelope.uid, ctx=self._ctx_out()
-        )
+        if self.sent is None:
+            self.sent = [key]
+        else:
+            self.sent.append(key)
+        env = self.envelope
+        inherited, written = env.ctx, self.written
+        ctx: dict[str, int] | None
+        if written:
+            ctx = {**inherited, **written} if inherited else dict(written)
+        else:
+            ctx = inherited or None
+        out = self._rt.sealer.seal_out(key, message, cycle=self.cycle, cause=env.uid, ctx=ctx)
         if self._out is None:
             self._out = [(key, out)]
         else:
@@ -239,15 +279,17 @@ class ContextKnowledge:
         timeout: float | None = None,
     ) -> Any:
         ctx = self._ctx
-        kw = {} if default is _MISSING else {"default": default}
-        if timeout is None and ctx.deadline:
-            timeout = max(0.0, ctx.deadline - time.monotonic())
-        value = await self.client.read(
-            key, type, min_version=ctx.envelope.ctx.get(key, 0), timeout=timeout, **kw
-        )
+        client = ctx._rt._knowledge or self.client
+        min_version = ctx.envelope.ctx.get(key, 0)
+        value = client.value_here(key, type, min_version)  # most reads: no await
+        if value is _MISSING:
+            kw = {} if default is _MISSING else {"default": default}
+            if timeout is None and ctx.deadline:
+                timeout = max(0.0, ctx.deadline - time.monotonic())
+            value = await client.read(key, type, min_version=min_version, timeout=timeout, **kw)
         if ctx.access is not None:
             ctx.access.append(
-                Access("read", key, self.client.known_version(key), ctx._rt.clock.time_ns())
+                Access("read", key, client.known_version(key), ctx._rt.clock.time_ns())
             )
         return value
 
@@ -263,8 +305,11 @@ class ContextKnowledge:
         self, key: str, value: Any, *, durable: bool = False, expect: int | None = None
     ) -> int:
         ctx = self._ctx
-        self._after_trigger()
-        version = await self.client.write(key, value, durable=durable, expect=expect)
+        client = ctx._rt._knowledge or self.client
+        versions = ctx.envelope.ctx
+        if versions:  # see _after_trigger
+            client.clock.observe(max(versions.values()))
+        version = await client.write(key, value, durable=durable, expect=expect)
         if ctx.written is None:
             ctx.written = {}
         ctx.written[key] = version
@@ -311,7 +356,7 @@ class NodeRuntime:
         self.stats = NodeStats()
         # one handler at a time: the consumer tasks of the routes and direct dispatch
         # (in a publisher's task) take the lock (asyncio's: no loop turn uncontended)
-        self._lock = asyncio.Lock()
+        self._lock = Turn()
         self._subs: list[Subscription] = []
         self.rejections = Rejections(node.name, log, clock=self.clock.time_ns)
         self._drop_log = Throttle()
@@ -375,17 +420,20 @@ class NodeRuntime:
         try:
             await self.fabric.publish(key, out, timeout=SEND_TIMEOUT)
         except BackpressureTimeout:
-            self.stats.send_timeouts += 1
-            if self._drop_log.hit(f"send {key}"):
-                log.warning(
-                    "node %s: a local node's inbox on %s stayed full for %g s: it did not get "
-                    "this sample (%d such sends in all); that node is slower than its input",
-                    self.node.name,
-                    key,
-                    SEND_TIMEOUT,
-                    self.stats.send_timeouts,
-                )
+            self._send_timed_out(key)
         self.stats.sent += 1
+
+    def _send_timed_out(self, key: str) -> None:
+        self.stats.send_timeouts += 1
+        if self._drop_log.hit(f"send {key}"):
+            log.warning(
+                "node %s: a local node's inbox on %s stayed full for %g s: it did not get "
+                "this sample (%d such sends in all); that node is slower than its input",
+                self.node.name,
+                key,
+                SEND_TIMEOUT,
+                self.stats.send_timeouts,
+            )
 
     async def _flush(self, ctx: Context) -> None:
         """Send what ``ctx``'s handler queued; a traced call gets its ``start`` record
@@ -413,12 +461,19 @@ class NodeRuntime:
 
     async def _send_queued(self, ctx: Context) -> None:
         out, ctx._out = ctx._out, None
-        if out:
-            for key, o in out[:-1]:
-                o.direct = False  # only the last send may be handled in this task: a
-                await self._send_out(key, o)  # handler that waits then holds up nothing
-            key, o = out[-1]
-            await self._send_out(key, o)
+        if not out:
+            return
+        for key, o in out[:-1]:
+            o.direct = False  # only the last send may be handled in this task: a
+            await self._send_out(key, o)  # handler that waits then holds up nothing
+        key, o = out[-1]
+        try:  # as _send_out, one frame fewer under every local handler it runs
+            await self.fabric.publish(key, o, timeout=SEND_TIMEOUT)
+        except BackpressureTimeout:
+            self.stats.sent += 1
+            self._send_timed_out(key)
+            return
+        self.stats.sent += 1
 
     async def _trace(
         self,
@@ -504,10 +559,10 @@ class NodeRuntime:
         if (
             self._calling
             or self._inflight
-            or len(inbox)
-            or inbox.closed
+            or inbox._items
+            or inbox._closed
             or _depth[0] >= MAX_DIRECT_DEPTH
-            or self._lock.locked()
+            or self._lock.held
         ):
             return None
         env = sample.obj
@@ -519,19 +574,14 @@ class NodeRuntime:
         kb = self._knowledge
         if kb is None or (env.ctx and not kb.has_versions(env.ctx)):
             return None
-        self._calling += 1  # taken: nothing else may start on this node from here
+        # taken at once (no await between here and the call): nothing else may start on
+        # this node until the call returns
+        self._lock.held = True
+        self._calling += 1
+        _depth[0] += 1
         inbox.stats.accepted += 1
         self.stats.received += 1
-        return self._run_direct(route, Context(self, sample.key, env, env.body, 0.0))
-
-    async def _run_direct(self, route: Route, ctx: Context) -> None:
-        _depth[0] += 1
-        try:
-            async with self._lock:
-                await self._call(route, ctx)
-        finally:
-            _depth[0] -= 1
-            self._calling -= 1
+        return self._call(route, Context(self, sample.key, env, env.body, 0.0), True)
 
     async def handle(self, route: Route, sample: Sample) -> None:
         """Open, check, decode and dispatch one sample to ``route``'s handler."""
@@ -572,57 +622,68 @@ class NodeRuntime:
         async with self._lock:
             await self._call(route, ctx)
 
-    async def _call(self, route: Route, ctx: Context) -> None:
-        clock = self.clock
-        # records nobody subscribes to are not built (decided once per call)
-        traced = self.trace and route.traced and self.fabric.has_subscribers(self._trace_key)
-        start = 0
-        waited = None
-        if traced:
-            start = ctx.started = clock.time_ns()
-            ctx.access = []
-            ctx._route = route
-            # runs only if the handler gives the loop a turn before it returns
-            waited = (self._loop or asyncio.get_running_loop()).call_soon(self._waited, ctx)
-        error = ""
-        self._calling += 1
+    async def _call(self, route: Route, ctx: Context, direct: bool = False) -> None:
+        """Run ``route``'s handler on ``ctx``, trace it, send what it sent. ``direct``:
+        :meth:`direct` took the node's turn for this call; it is given back at the end."""
         try:
-            if route.takes_message:
-                await route.fn(ctx, ctx.message)
+            clock = self.clock
+            # records nobody subscribes to are not built (decided once per call)
+            traced = self.trace and route.traced and self.fabric.has_subscribers(self._trace_key)
+            start = 0
+            waited = None
+            if traced:
+                start = ctx.started = clock.time_ns()
+                ctx.access = []
+                ctx._route = route
+                # runs only if the handler gives the loop a turn before it returns
+                loop = self._loop or asyncio.get_running_loop()
+                waited = loop.call_soon(self._waited, ctx)
+            error = ""
+            self._calling += 1
+            try:
+                if route.takes_message:
+                    await route.fn(ctx, ctx.message)
+                else:
+                    await route.fn(ctx)
+            except Exception as exc:  # a handler bug must not stop the node
+                error = f"{type(exc).__name__}: {exc}"
+                self._failed(route, ctx)
             else:
-                await route.fn(ctx)
-        except Exception as exc:  # a handler bug must not stop the node
-            error = f"{type(exc).__name__}: {exc}"
-            self.stats.failed += 1
-            # the traceback at once, then at most one a second per handler with a count:
-            # a poisoned input can make every call fail
-            count = self._drop_log.hit(f"failed {route.handler_name}")
-            if count:
-                log.exception(
-                    "node %s: handler %s failed on %s (%d failure(s) since the last report, "
-                    "%d in all)",
-                    self.node.name,
-                    route.handler_name,
-                    ctx.key,
-                    count,
-                    self.stats.failed,
+                self.stats.handled += 1
+            finally:
+                self._calling -= 1
+                if waited is not None:
+                    waited.cancel()  # also when the call was cancelled
+            if traced:
+                end = clock.time_ns()
+                if ctx._starting is not None:
+                    await ctx._starting
+                phase = "end" if ctx._split else "call"
+                await self._trace(
+                    route, phase, ctx, end if ctx._split else start, end - start, error, ctx.access
                 )
-        else:
-            self.stats.handled += 1
+            if ctx._out:  # what it sent before it failed goes out too, as it was sent
+                await self._send_queued(ctx)
         finally:
-            self._calling -= 1
-            if waited is not None:
-                waited.cancel()  # also when the call was cancelled
-        if traced:
-            end = clock.time_ns()
-            if ctx._starting is not None:
-                await ctx._starting
-            if ctx._split:
-                await self._trace(route, "end", ctx, end, end - start, error, ctx.access)
-            else:
-                await self._trace(route, "call", ctx, start, end - start, error, ctx.access)
-        if ctx._out:  # what it sent before it failed goes out too, as it was sent
-            await self._send_queued(ctx)
+            if direct:
+                _depth[0] -= 1
+                self._calling -= 1
+                self._lock.release()
+
+    def _failed(self, route: Route, ctx: Context) -> None:
+        """Count a handler's failure and log its traceback (at once, then at most one a
+        second per handler with a count: a poisoned input can make every call fail)."""
+        self.stats.failed += 1
+        count = self._drop_log.hit(f"failed {route.handler_name}")
+        if count:
+            log.exception(
+                "node %s: handler %s failed on %s (%d failure(s) since the last report, %d in all)",
+                self.node.name,
+                route.handler_name,
+                ctx.key,
+                count,
+                self.stats.failed,
+            )
 
     # -- lifecycle ---------------------------------------------------------------------
 

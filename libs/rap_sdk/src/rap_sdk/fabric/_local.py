@@ -153,43 +153,73 @@ class Router:
         return hit
 
     @staticmethod
-    async def deliver(
+    def deliver(
         subs: tuple[LocalSubscription, ...],
         key: str,
         payload: bytes | Outgoing,
         timeout: float | None,
-    ) -> BackpressureTimeout | None:
+    ) -> Awaitable[BackpressureTimeout | None]:
         """Hand a locally published sample to this process's matching subscribers
         (``subs``, from :meth:`matching`; FIFO inboxes with ``block`` make the publisher
         wait for room, at most ``timeout`` s each). A subscriber whose inbox stays full
         past the deadline does not get the sample (counted in its ``dropped``) and the
         others still do; the timeout is returned for the caller to raise once the
-        sample has gone everywhere else. Callers skip the call when ``subs`` is empty."""
-        late: BackpressureTimeout | None = None
-        group = direct_to = None
-        if isinstance(payload, Outgoing):
-            group = payload.group
-            if payload.direct:
-                # at most one subscriber handles it in this task, after every other one
-                # has it in its inbox: one that waits for another then lets it run
-                direct_to = next((s for s in reversed(subs) if s.direct is not None), None)
-        for sub in subs:
-            if sub is direct_to or (group is not None and sub.group is group):
-                continue  # the last; or its owner was handed the sample by the publisher
-            late = await _enqueue(sub, sub.sample(key, payload, False), timeout) or late
-        if direct_to is not None:
-            sample = direct_to.sample(key, payload, False)
-            assert direct_to.direct is not None
-            run = direct_to.direct(sample)
-            if run is not None:
-                await run  # handled in this task: no inbox, no task switch
-            else:
-                late = await _enqueue(direct_to, sample, timeout) or late
-        return late
+        sample has gone everywhere else. Callers skip the call when ``subs`` is empty,
+        and await what it returns (for a sample that one idle local node takes at once:
+        that node's handler call itself)."""
+        if len(subs) == 1 and type(payload) is Outgoing and payload.direct:
+            sub = subs[0]
+            direct = sub.direct
+            if direct is not None and (payload.group is None or sub.group is not payload.group):
+                sample = Sample(key, payload, False, None, monotonic())
+                run = direct(sample)
+                if run is not None:
+                    return run  # handled in the publisher's task: no inbox, no task switch
+                return _enqueue(sub, sample, timeout)
+        return _deliver(subs, key, payload, timeout)
 
     def close_all(self) -> None:
         for sub in list(self._subs):
             sub.close()
+
+
+async def _deliver(
+    subs: tuple[LocalSubscription, ...],
+    key: str,
+    payload: bytes | Outgoing,
+    timeout: float | None,
+) -> BackpressureTimeout | None:
+    late: BackpressureTimeout | None = None
+    group = direct_to = None
+    if type(payload) is Outgoing:
+        group = payload.group
+        if payload.direct:
+            # at most one subscriber handles it in this task, after every other one
+            # has it in its inbox: one that waits for another then lets it run
+            for sub in reversed(subs):
+                if sub.direct is not None:
+                    direct_to = sub
+                    break
+    local_obj = type(payload) is Outgoing  # nothing to prepare: no decoding
+    for sub in subs:
+        if sub is direct_to or (group is not None and sub.group is group):
+            continue  # the last; or its owner was handed the sample by the publisher
+        sample = (
+            Sample(key, payload, False, None, monotonic())
+            if local_obj
+            else sub.sample(key, payload, False)
+        )
+        if not sub.inbox.put_nowait(sample):
+            late = await _enqueue(sub, sample, timeout) or late
+    if direct_to is not None:
+        sample = Sample(key, payload, False, None, monotonic())  # a local object
+        assert direct_to.direct is not None
+        run = direct_to.direct(sample)
+        if run is not None:
+            await run  # handled in this task: no inbox, no task switch
+        else:
+            late = await _enqueue(direct_to, sample, timeout) or late
+    return late
 
 
 async def _enqueue(
@@ -212,12 +242,10 @@ class Lifecycle:
     def __init__(self, what: str) -> None:
         self._what = what
         self._state = "new"
+        self.is_open = False
+        """Whether it is open now (a plain flag: publish checks it every time)."""
         self._tg: TaskGroup | None = None
         self._stack: contextlib.AsyncExitStack | None = None
-
-    @property
-    def is_open(self) -> bool:
-        return self._state == "open"
 
     def check_open(self) -> None:
         if self._state == "new":
@@ -233,6 +261,7 @@ class Lifecycle:
         self._tg = await stack.enter_async_context(anyio.create_task_group())
         self._stack = stack
         self._state = "open"
+        self.is_open = True
 
     async def close(
         self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
@@ -242,6 +271,7 @@ class Lifecycle:
         assert self._stack is not None
         self._tg.cancel_scope.cancel()
         self._state = "closed"
+        self.is_open = False
         stack, self._stack, self._tg = self._stack, None, None
         await stack.__aexit__(et, ev, tb)
 

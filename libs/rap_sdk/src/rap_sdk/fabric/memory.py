@@ -50,6 +50,8 @@ class MemoryBus:
         self.watches: list[tuple[str, InboxStream[LivelinessChange]]] = []
         self.queryables: list[_MemQueryable] = []
         self._changed: anyio.Event | None = None
+        self.epoch = 0
+        """Counts changes of members and subscriptions (cached matches are redone)."""
 
     async def wait_changed(self) -> None:
         """Wait for the next subscription or queryable on the bus."""
@@ -117,6 +119,17 @@ class MemoryFabric:
         self._handler_timeout = query_handler_timeout
         self._published: set[str] = set()
         """Keys already validated by publish()."""
+        self._epoch = -1
+        self._others: list[MemoryFabric] = []
+        self._has: dict[str, bool] = {}
+        self._has_remote: dict[str, bool] = {}
+
+    def _refresh(self) -> None:
+        """Redo what is cached from the bus (its members or a subscription changed)."""
+        self._epoch = self.bus.epoch
+        self._others = [m for m in self.bus.members if m is not self]
+        self._has.clear()
+        self._has_remote.clear()
 
     @property
     def id(self) -> str:
@@ -125,6 +138,7 @@ class MemoryFabric:
     async def __aenter__(self) -> MemoryFabric:
         await self._life.open()
         self.bus.members.append(self)
+        self.bus.epoch += 1
         return self
 
     async def __aexit__(
@@ -140,6 +154,7 @@ class MemoryFabric:
         for w in list(self._watches):
             w.close()
         self.bus.members.remove(self)
+        self.bus.epoch += 1
         await self._life.close(et, ev, tb)
 
     async def publish(
@@ -150,7 +165,8 @@ class MemoryFabric:
         timeout: float | None = None,
         local: bool = True,
     ) -> None:
-        self._life.check_open()
+        if not self._life.is_open:
+            self._life.check_open()
         if key not in self._published:
             validate(key)
             if "*" in key:
@@ -163,9 +179,9 @@ class MemoryFabric:
         # other "processes" first (they get bytes, as over a network): a local
         # subscriber may handle the sample in this task at once, and what it sends must
         # not reach them before the sample itself
-        for member in self.bus.members:
-            if member is self:
-                continue
+        if self._epoch != self.bus.epoch:
+            self._refresh()
+        for member in self._others:
             for sub in member._router.matching(key):
                 data = payload.data if isinstance(payload, Outgoing) else payload
                 sub.inbox.offer(sub.sample(key, data, True))
@@ -176,10 +192,19 @@ class MemoryFabric:
                 raise late
 
     def has_subscribers(self, key: str, *, remote_only: bool = False) -> bool:
-        self._life.check_open()
-        return any(
-            m._router.matching(key) for m in self.bus.members if not (remote_only and m is self)
-        )
+        if not self._life.is_open:
+            self._life.check_open()
+        if self._epoch != self.bus.epoch:
+            self._refresh()
+        cache = self._has_remote if remote_only else self._has
+        hit = cache.get(key)
+        if hit is None:
+            hit = any(m._router.matching(key) for m in self._others) or (
+                not remote_only and bool(self._router.matching(key))
+            )
+            if len(cache) < 4096:
+                cache[key] = hit
+        return hit
 
     def subscribe(
         self,
@@ -195,9 +220,11 @@ class MemoryFabric:
         def closed(s: InboxStream[Sample]) -> None:
             assert isinstance(s, LocalSubscription)
             self._router.remove(s)
+            self.bus.epoch += 1
 
         sub = LocalSubscription(key_expr, policy or DEFAULT_POLICY, closed, prepare, group)
         self._router.add(sub)
+        self.bus.epoch += 1
         self.bus.notify()
         return sub
 

@@ -308,7 +308,8 @@ class ZenohFabric:
         timeout: float | None = None,
         local: bool = True,
     ) -> None:
-        self._life.check_open()
+        if not self._life.is_open:
+            self._life.check_open()
         cell = self._pubs.get(key) or self._declare_publisher(key)  # validates the key
         # The matching flag flips on Zenoh's thread when a remote subscriber's
         # declaration reaches this session, i.e. when Zenoh's own routing would start
@@ -317,7 +318,7 @@ class ZenohFabric:
         # at once, and what it sends must not reach them before the sample itself.
         if cell.matching:
             try:
-                cell.pub.put(payload.data if isinstance(payload, Outgoing) else payload)
+                cell.pub.put(payload.data if type(payload) is Outgoing else payload)
             except zenoh.ZError as exc:
                 raise FabricError(f"publish on {key!r} failed: {exc}") from None
         subs = self._router.matching(key) if local else ()
@@ -358,7 +359,8 @@ class ZenohFabric:
         return cell
 
     def has_subscribers(self, key: str, *, remote_only: bool = False) -> bool:
-        self._life.check_open()
+        if not self._life.is_open:
+            self._life.check_open()
         if not remote_only and self._router.matching(key):
             return True
         return (self._pubs.get(key) or self._declare_publisher(key)).matching
