@@ -166,3 +166,41 @@ def test_generic_messages_are_handed_over_only_with_the_declared_plan_type() -> 
         Verdict(plan_uid=b"u" * 16, approved=True, legitimator="l", ts=1, proposal=other)
     )
     assert not verdicts(good)
+
+
+async def test_a_store_that_applies_at_once_stores_a_local_write_before_it_returns() -> None:
+    async with (
+        MemoryFabric() as fabric,
+        open_service(KnowledgeConfig(system=SYSTEM), fabric=fabric) as svc,
+        KnowledgeClient(fabric=fabric, system=SYSTEM, writer="w") as w,
+    ):
+        v = await w.write("laser_scan", scan(1))
+        assert svc.stats.stream_applied == 1  # in the writer's task: no task woken
+        assert (await svc.store.get("laser_scan")).version == v  # type: ignore[union-attr]
+
+
+async def test_local_writes_keep_their_order_when_the_service_is_busy() -> None:
+    """While a record waits in the service's inbox, later local writes queue behind it
+    instead of being stored first."""
+    async with (
+        MemoryFabric() as fabric,
+        open_service(KnowledgeConfig(system=SYSTEM), fabric=fabric) as svc,
+        KnowledgeClient(fabric=fabric, system=SYSTEM, writer="w") as w,
+    ):
+        applied: list[int] = []
+        store_apply = svc.store.apply
+
+        async def apply(rec, **kw):  # type: ignore[no-untyped-def]
+            applied.append(rec.version)
+            return await store_apply(rec, **kw)
+
+        svc.store.apply = apply  # type: ignore[method-assign]
+        svc._taking += 1  # as if a record were being stored: the next ones queue
+        first = await w.write("a", 1)
+        svc._taking -= 1
+        second = await w.write("a", 2)  # one is queued: this one queues behind it
+        assert applied == []
+        await settled(lambda: len(applied) == 2)
+        assert applied == [first, second]
+        third = await w.write("a", 3)  # idle again: stored at once
+        assert applied == [first, second, third]

@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterable
+from collections.abc import Awaitable, Iterable
+from functools import partial
 from typing import Any
 
 import anyio
@@ -38,7 +39,7 @@ from rap_schemas import (
     keys,
 )
 from rap_schemas.limits import DecodeRejected, SafeDecoder
-from rap_sdk import Fabric, InboxPolicy, Opener, QueryRequest, RapError, Reply, Sealer
+from rap_sdk import Fabric, InboxPolicy, Opener, QueryRequest, RapError, Reply, Sample, Sealer
 from rap_sdk.envelope import typed_decoder
 from rap_sdk.errors import LifecycleError, RejectedSample
 from rap_sdk.inbox import Overflow
@@ -94,6 +95,8 @@ class KnowledgeService:
         self._prefix = keys.kb(config.system, "x")[:-1]
         self._log_key = keys.log(config.system, NODE)
         self._model_locks: dict[str, anyio.Lock] = {}
+        self._taking = 0
+        """Records being stored now (a direct take waits for none: it goes to the inbox)."""
 
     async def run(self, *, task_status: TaskStatus[None] = anyio.TASK_STATUS_IGNORED) -> None:
         """Serve until cancelled; ready (subscribed and serving) when started. Raises
@@ -106,6 +109,8 @@ class KnowledgeService:
             InboxPolicy(capacity=65536, overflow=Overflow.FIFO, block=True, max_bytes=256 << 20),
             prepare=_STREAM,
         )
+        if getattr(self.store, "immediate", False) and hasattr(stream, "direct"):
+            stream.direct = partial(self._direct, stream)
         queryable = self.fabric.serve(pattern, self._answer)
         token = self.fabric.declare_token(keys.alive(self.config.system, NODE))
         try:
@@ -124,32 +129,50 @@ class KnowledgeService:
                 sample = await stream.get()
             except LifecycleError:
                 return
-            try:
-                env = sample.obj  # a record written in this process: no decoding
-                local = env is not None and type(env.body) is KbRecord
-                if not local:
-                    env = self.opener.open_typed(
-                        sample.key, sample.payload, _STREAM, KbRecord.TYPE, sample.prepared
-                    )
-                if env is None or env.source == NODE:
-                    continue  # a duplicate, or our own republication of a durable write
-                rec: KbRecord = env.body
-                if sample.key != self._prefix + rec.key:
-                    raise BadRequest(f"record for {rec.key!r} arrived on {sample.key!r}")
-                await self.store.apply(admit_record(rec, self.config.max_value_bytes, local=local))
-                self.stats.stream_applied += 1
-            except RejectedSample as exc:
-                self.stats.stream_rejected += 1
-                await self._rejected(
-                    self.rejections.reject(sample.key, exc.reason, source=exc.source, type=exc.type)
+            await self._take(sample)
+
+    def _direct(self, stream: Any, sample: Sample) -> Awaitable[None] | None:
+        """A record written in this process, stored in the writer's task at once when the
+        store applies without waiting (memory) and nothing is queued or being stored:
+        no inbox, no task woken. None: it goes through the inbox."""
+        if self._taking or len(stream.inbox):
+            return None
+        env = sample.obj
+        if env is None or type(env.body) is not KbRecord:
+            return None
+        stream.inbox.stats.accepted += 1
+        return self._take(sample)
+
+    async def _take(self, sample: Sample) -> None:
+        self._taking += 1
+        try:
+            env = sample.obj  # a record written in this process: no decoding
+            local = env is not None and type(env.body) is KbRecord
+            if not local:
+                env = self.opener.open_typed(
+                    sample.key, sample.payload, _STREAM, KbRecord.TYPE, sample.prepared
                 )
-            except (BadRequest, TooLarge) as exc:
-                self.stats.stream_rejected += 1
-                await self._rejected(self.rejections.reject(sample.key, str(exc)))
-            except Exception as exc:  # the store failed: counted, logged, the stream goes on
-                self.stats.stream_failed += 1
-                if self._throttle.hit("store"):
-                    log.error("write stream: could not store a record on %s: %s", sample.key, exc)
+            if env is None or env.source == NODE:
+                return  # a duplicate, or our own republication of a durable write
+            rec: KbRecord = env.body
+            if sample.key != self._prefix + rec.key:
+                raise BadRequest(f"record for {rec.key!r} arrived on {sample.key!r}")
+            await self.store.apply(admit_record(rec, self.config.max_value_bytes, local=local))
+            self.stats.stream_applied += 1
+        except RejectedSample as exc:
+            self.stats.stream_rejected += 1
+            await self._rejected(
+                self.rejections.reject(sample.key, exc.reason, source=exc.source, type=exc.type)
+            )
+        except (BadRequest, TooLarge) as exc:
+            self.stats.stream_rejected += 1
+            await self._rejected(self.rejections.reject(sample.key, str(exc)))
+        except Exception as exc:  # the store failed: counted, logged, the stream goes on
+            self.stats.stream_failed += 1
+            if self._throttle.hit("store"):
+                log.error("write stream: could not store a record on %s: %s", sample.key, exc)
+        finally:
+            self._taking -= 1
 
     async def _rejected(self, rec: Rejection | None) -> None:
         """Publish a due rejection record on ``rap/<system>/log/knowledge``."""

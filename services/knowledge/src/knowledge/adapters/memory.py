@@ -23,6 +23,10 @@ class MemoryStore:
     """Latest records in a dict; per key a history list ordered by (ts, version), holding
     each (version, writer) once, trimmed to the newest by count and age."""
 
+    immediate = True
+    """``apply`` never waits (no I/O): the service may store a record written in its own
+    process in the writer's task."""
+
     def __init__(self, retention: Retention) -> None:
         self._retention = retention
         self._latest: dict[str, KbRecord] = {}
