@@ -23,7 +23,7 @@ import inspect
 import types
 import typing
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Literal, TypeVar
 
 import msgspec
@@ -94,20 +94,21 @@ class Route:
     may be handed over as it is, with no encoding nor decoding (None: never; the sample
     is then decoded from its bytes)."""
 
-    @property
-    def handler_name(self) -> str:
-        return getattr(self.fn, "__qualname__", repr(self.fn))
+    handler_name: str = field(init=False)
+    """The handler's qualified name (in trace records and logs)."""
+    traced: bool = field(init=False)
+    """Calls are traced as stage records; not for trust outputs (a handler of a
+    checker's verdicts runs outside any MAPLE-K cycle, and its records would feed the
+    checker its own consequences)."""
+
+    def __post_init__(self) -> None:
+        name = getattr(self.fn, "__qualname__", None)
+        object.__setattr__(self, "handler_name", name if name is not None else repr(self.fn))
+        object.__setattr__(self, "traced", self.kind != "trust")
 
     def key(self, system: str) -> str:
         """The key this route handles in ``system``."""
         return _BUILDERS[self.kind](system, self.name)
-
-    @property
-    def traced(self) -> bool:
-        """Calls are traced as stage records; not for trust outputs (a handler of a
-        checker's verdicts runs outside any MAPLE-K cycle, and its records would feed
-        the checker its own consequences)."""
-        return self.kind != "trust"
 
 
 def _signature(fn: Callable[..., Any], where: str) -> tuple[bool, Any]:

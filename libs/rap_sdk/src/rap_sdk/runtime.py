@@ -501,8 +501,12 @@ class NodeRuntime:
             sent=(ctx.sent or []) if phase != "start" else [],
             access=access or [],
         )
-        out = self.sealer.seal_out(self._trace_key, rec, cycle=ctx.cycle, cause=env.uid)
-        await self._publish_record(self._trace_key, out)
+        key = self._trace_key
+        out = self.sealer.seal_out(key, rec, cycle=ctx.cycle, cause=env.uid)
+        try:  # as _publish_record, one frame fewer
+            await self.fabric.publish(key, out, timeout=RECORD_TIMEOUT)
+        except RapError as exc:
+            self._record_lost(key, exc)
 
     @property
     def knowledge(self) -> KnowledgeClient:
@@ -520,15 +524,18 @@ class NodeRuntime:
         try:
             await self.fabric.publish(key, payload, timeout=RECORD_TIMEOUT)
         except RapError as exc:
-            self.stats.records_lost += 1
-            if self.stats.records_lost == 1 or self.stats.records_lost % 1000 == 0:
-                log.warning(
-                    "node %s: %d record(s) on %s could not be published: %s",
-                    self.node.name,
-                    self.stats.records_lost,
-                    key,
-                    exc,
-                )
+            self._record_lost(key, exc)
+
+    def _record_lost(self, key: str, exc: RapError) -> None:
+        self.stats.records_lost += 1
+        if self.stats.records_lost == 1 or self.stats.records_lost % 1000 == 0:
+            log.warning(
+                "node %s: %d record(s) on %s could not be published: %s",
+                self.node.name,
+                self.stats.records_lost,
+                key,
+                exc,
+            )
 
     # -- receiving ---------------------------------------------------------------------
 
