@@ -167,15 +167,23 @@ class Router:
         sample has gone everywhere else. Callers skip the call when ``subs`` is empty,
         and await what it returns (for a sample that one idle local node takes at once:
         that node's handler call itself)."""
-        if len(subs) == 1 and type(payload) is Outgoing and payload.direct:
-            sub = subs[0]
-            direct = sub.direct
-            if direct is not None and (payload.group is None or sub.group is not payload.group):
-                sample = Sample(key, payload, False, None, monotonic())
-                run = direct(sample)
-                if run is not None:
-                    return run  # handled in the publisher's task: no inbox, no task switch
-                return _enqueue(sub, sample, timeout)
+        if type(payload) is Outgoing and payload.direct:
+            group = payload.group
+            target = None
+            for sub in subs:  # the one subscriber to take it, when there is one
+                if group is None or sub.group is not group:
+                    if target is not None:
+                        break
+                    target = sub
+            else:
+                direct = target.direct if target is not None else None
+                if direct is not None:
+                    assert target is not None
+                    sample = Sample(key, payload, False, None, monotonic())
+                    run = direct(sample)
+                    if run is not None:
+                        return run  # handled in the publisher's task: no inbox, no switch
+                    return _enqueue(target, sample, timeout)
         return _deliver(subs, key, payload, timeout)
 
     def close_all(self) -> None:
