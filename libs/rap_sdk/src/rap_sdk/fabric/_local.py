@@ -6,10 +6,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable, Generator
 from time import monotonic
 from types import TracebackType
-from typing import Any, Generic, Self, TypeVar
+from typing import Any, Final, Generic, Self, TypeVar
 
 import anyio
 from anyio.abc import TaskGroup
@@ -176,19 +176,33 @@ class Router:
                         break
                     target = sub
             else:
-                direct = target.direct if target is not None else None
-                if direct is not None:
-                    assert target is not None
+                if target is not None:
                     sample = Sample(key, payload, False, None, monotonic())
-                    run = direct(sample)
-                    if run is not None:
-                        return run  # handled in the publisher's task: no inbox, no switch
+                    direct = target.direct
+                    if direct is not None:
+                        run = direct(sample)
+                        if run is not None:
+                            return run  # handled in the publisher's task: no inbox
+                    if target.inbox.put_nowait(sample):
+                        return _DONE  # queued: nothing to wait for
                     return _enqueue(target, sample, timeout)
         return _deliver(subs, key, payload, timeout)
 
     def close_all(self) -> None:
         for sub in list(self._subs):
             sub.close()
+
+
+class _Done:
+    """An awaitable that is already done (a delivery that needed no waiting)."""
+
+    __slots__ = ()
+
+    def __await__(self) -> Generator[Any, None, None]:
+        return iter(())  # type: ignore[return-value]
+
+
+_DONE: Final = _Done()
 
 
 async def _deliver(
