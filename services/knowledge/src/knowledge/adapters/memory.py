@@ -8,7 +8,7 @@ import time
 from rap_schemas import KbRecord, ModelMeta
 from rap_sdk.keyexpr import intersects
 
-from ..core import Retention, check_deadline
+from ..core import Limit, Retention, check_deadline
 from ..errors import Conflict
 from ..ports import Applied
 
@@ -38,7 +38,8 @@ class MemoryStore:
     async def apply(
         self, rec: KbRecord, *, expect: int | None = None, deadline: float | None = None
     ) -> Applied:
-        check_deadline(rec.key, deadline)
+        if deadline is not None:
+            check_deadline(rec.key, deadline)
         cur = self._latest.get(rec.key)
         cur_version = cur.version if cur is not None else 0
         if cur is not None and cur.version == rec.version and cur.writer == rec.writer:
@@ -47,22 +48,31 @@ class MemoryStore:
             live = cur_version if cur is not None and not cur.deleted else 0
             if live != expect:
                 raise Conflict(rec.key, expect, live)
-        ids = self._ids.setdefault(rec.key, set())
-        if (rec.version, rec.writer) not in ids:
-            ids.add((rec.version, rec.writer))
-            hist = self._history.setdefault(rec.key, [])
-            if not hist or _order(hist[-1]) <= _order(rec):
+        ids = self._ids.get(rec.key)
+        if ids is None:
+            ids = self._ids[rec.key] = set()
+            self._history[rec.key] = []
+        ident = (rec.version, rec.writer)
+        if ident not in ids:
+            ids.add(ident)
+            hist = self._history[rec.key]
+            last = hist[-1] if hist else None
+            if last is None or (last.ts, last.version) <= (rec.ts, rec.version):
                 hist.append(rec)  # the usual case: the newest
             else:
                 bisect.insort(hist, rec, key=_order)
-            self._trim(rec.key, hist, ids)
+            limit = self._retention.limit(rec.key)
+            if limit.max_age_ns is not None or (
+                limit.max_count is not None and len(hist) > limit.max_count
+            ):
+                self._trim(limit, hist, ids)
         if rec.version > cur_version:
             self._latest[rec.key] = rec
             return Applied(rec.version, True)
         return Applied(cur_version, False)
 
-    def _trim(self, key: str, hist: list[KbRecord], ids: set[tuple[int, str]]) -> None:
-        limit = self._retention.limit(key)
+    @staticmethod
+    def _trim(limit: Limit, hist: list[KbRecord], ids: set[tuple[int, str]]) -> None:
         drop = 0
         if limit.max_count is not None and len(hist) > limit.max_count:
             drop = len(hist) - limit.max_count
