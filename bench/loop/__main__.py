@@ -35,14 +35,14 @@ import anyio
 from bench.report import ROOT, hardware, hardware_line, pct, table, write_json, write_section
 
 from .rap import run_floor, run_floor_paced, run_inproc, run_rap
-from .transport import zenoh_echo
+from .transport import zenoh_echo, zenoh_relay
 
 RATES = [5.0, 20.0, 100.0]
 RAP_LADDER = [200.0, 400.0, 700.0, 1000.0]
 PEER_LADDER = (200.0, 300.0, 500.0)
 
 
-FLOORS = ("floor-paced", "zenoh-echo", "rap-echo", "rap-inproc")
+FLOORS = ("floor-paced", "zenoh-echo", "zenoh-relay", "rap-echo", "rap-inproc")
 """Rows that take the loop apart: two cross-process hops on raw Zenoh, the same through
 RAP, and the whole chain in one process without a transport."""
 
@@ -127,6 +127,10 @@ def main() -> int:
         r = zenoh_echo(rate, _cycles(rate, seconds))
         rows.append(_row("zenoh-echo", r))
         _say(f"  zenoh-echo {rate:g} Hz: {rows[-1]}")
+    for rate in RATES:  # the five-process layout's transport floor: six hops, loops woken
+        r = zenoh_relay(rate, _cycles(rate, seconds))
+        rows.append(_row("zenoh-relay", r))
+        _say(f"  zenoh-relay {rate:g} Hz: {rows[-1]}")
     # RAP's processes run on uvloop (as rap_sdk.app.run and maplek_runner do); so does
     # the robot here
     rows += anyio.run(_rap, "rap-echo", RATES, seconds, logs, backend_options=uv)
@@ -202,7 +206,11 @@ def _budgets(rows: list[dict[str, Any]], instr: dict[str, Any] | None) -> list[d
         ):
             ratio = _ratio(rows, a, b, rate)
             if ratio is not None:
-                checks.append(_check(f"{what} at {rate:g} Hz", ratio, budget))
+                floor = ""
+                if a == "rap-5proc":
+                    relay = _ratio(rows, "zenoh-relay", b, rate)
+                    floor = f"zenoh-relay: {relay}" if relay is not None else ""
+                checks.append(_check(f"{what} at {rate:g} Hz", ratio, budget, floor))
         for variant in ("rap-1proc", "rap-5proc"):
             r = _find(rows, variant, rate)
             if r is None or r["p50_ms"] is None:
@@ -224,6 +232,11 @@ ROWS_EXPLAINED = [
     "finds them.",
     "- `zenoh-echo`: two cross-process hops on raw Zenoh (robot -> echo -> robot), "
     "answered inside Zenoh's callback thread: no event loop at either end, no RAP code.",
+    "- `zenoh-relay`: the five-process layout's transport floor on raw Zenoh: the "
+    "robot -> five relay processes -> robot (six cross-process hops, all sessions "
+    "meshed), each relay woken in its asyncio loop (uvloop) and putting the sample on "
+    "from there: what six RAP hops pay at least, with no envelope, no decoding and no "
+    "knowledge.",
     "- `rap-echo`: the same round trip through RAP (one node in a runner process, "
     "answering each scan with a plan).",
     "- `rap-inproc`: robot, the five stages and the knowledge service in one process on "
@@ -304,6 +317,7 @@ def _where(rows: list[dict[str, Any]]) -> list[str]:
         *systems,
         "1proc floor",
         "5proc / echo",
+        "5proc - relay",
         "2.4 x echo",
         "0.45 x rpio",
         "0.9 x rpio",
@@ -312,13 +326,14 @@ def _where(rows: list[dict[str, Any]]) -> list[str]:
     for rate in RATES:
         p50 = {s: (r or {}).get("p50_ms") for s in systems for r in [_find(rows, s, rate)]}
         peer, echo, five = p50["rpio-redis"], p50["zenoh-echo"], p50["rap-5proc"]
-        rap_echo, logic = p50["rap-echo"], p50["floor-paced"]
+        rap_echo, logic, relay = p50["rap-echo"], p50["floor-paced"], p50["zenoh-relay"]
         body.append(
             [
                 rate,
                 *p50.values(),
                 round(rap_echo + logic, 3) if rap_echo and logic else None,
                 round(five / echo, 2) if five and echo else None,
+                round(five - relay, 3) if five and relay else None,
                 round(2.4 * echo, 3) if echo else None,
                 *(round(peer * f, 3) if peer else None for f in (0.45, 0.9)),
             ]
@@ -329,7 +344,9 @@ def _where(rows: list[dict[str, Any]]) -> list[str]:
         "process. One runner process adds the chain (`rap-inproc` less its share of "
         "`floor-paced`) and the knowledge writes going out to the knowledge service's "
         "process; five processes add four more hops, each paying an event-loop wake-up "
-        "at both ends (`5proc / echo` is that loop's p50 in raw Zenoh round trips). "
+        "at both ends (`5proc / echo` is that loop's p50 in raw Zenoh round trips; "
+        "`zenoh-relay` is those six hops with their wake-ups and nothing else, and "
+        "`5proc - relay` what RAP's stages, envelopes and knowledge add to them). "
         "`1proc floor` is `rap-echo` plus `floor-paced`: the least a one-process loop can "
         "take with RAP's transport path as it is and no runtime cost at all for the five "
         "stages; where `2.4 x echo` is under it, that budget needs the two event-loop "

@@ -1,18 +1,22 @@
 """CPU work per loop cycle, counted in instructions under callgrind (no drift with load).
 
-    python -m bench.loop.instructions [--cycles 300]
+    python -m bench.loop.instructions [--cycles 300] [--kinds direct chain ...]
 
-Three children, each run twice under ``valgrind --tool=callgrind`` with ``N`` and ``2N``
-cycles after the same warm-up; the difference of the two totals divided by ``N`` is the
-cost of one cycle, with start-up, imports and warm-up cancelled out (after the warm-up the
-heap is collected and frozen and collection is off: see ``_settle``):
+Children (three by default), each run twice under ``valgrind --tool=callgrind`` with
+``N`` and ``2N`` cycles after the same warm-up; the difference of the two totals divided
+by ``N`` is the cost of one cycle, with start-up, imports and warm-up cancelled out
+(after the warm-up the heap is collected and frozen and collection is off: see
+``_settle``):
 
 - ``direct``: the five handlers of the race's chain called directly on a dict
   (``chain.handlers``): what the loop's own logic costs;
 - ``chain``: the robot, the five nodes and the knowledge service in one process on the
   in-memory fabric, one scan at a time (send, wait for the plan): what RAP adds;
 - ``chain-traced``: the same with a subscriber to every trace record (as a trust checker
-  or a cycle tracker in the process would be).
+  or a cycle tracker in the process would be);
+- ``chain-no-knowledge``, ``chain-no-store`` (asked for with ``--kinds``: where the time
+  goes): the chain with the handlers' knowledge on a dict, and with a knowledge service
+  that stores nothing.
 
 The children run on uvloop, as RAP's processes do. Results: instructions per cycle, and
 the ratio of each chain to ``direct``.
@@ -44,6 +48,7 @@ from bench.loop.chain import handlers
 from bench.loop.rap import SYSTEM, make_scan
 
 WARMUP = 50
+KINDS = ["direct", "chain", "chain-traced", "chain-no-knowledge", "chain-no-store"]
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -57,7 +62,41 @@ def _child(kind: str, cycles: int) -> None:
                 _settle()
             assert cycle(scan) is not None
         return
+    if kind == "chain-no-knowledge":
+        _no_knowledge()
+    elif kind == "chain-no-store":
+        _no_store()
     anyio.run(_chain, kind == "chain-traced", cycles, backend_options={"use_uvloop": True})
+
+
+def _no_knowledge() -> None:
+    """Where the time goes: handlers' reads and writes on a dict instead of knowledge
+    (no record, no stream, no service, no replica; the envelopes carry no versions)."""
+    from rap_sdk.runtime import ContextKnowledge
+
+    values: dict[str, Any] = {}
+
+    async def write(self: ContextKnowledge, key: str, value: Any, **_: Any) -> int:
+        values[key] = value
+        return 1
+
+    async def read(self: ContextKnowledge, key: str, type: Any = None, **_: Any) -> Any:
+        return values[key]
+
+    ContextKnowledge.write = write  # type: ignore[method-assign,assignment]
+    ContextKnowledge.read = read  # type: ignore[method-assign,assignment]
+
+
+def _no_store() -> None:
+    """Where the time goes: the knowledge service takes the records written and stores
+    nothing (everything else as in ``chain``)."""
+    from knowledge.service import KnowledgeService
+    from rap_sdk import Sample
+
+    async def take(self: KnowledgeService, sample: Sample) -> None:
+        return None
+
+    KnowledgeService._take = take  # type: ignore[method-assign]
 
 
 def _settle() -> None:
@@ -182,12 +221,19 @@ def measure(
 def main() -> None:
     ap = argparse.ArgumentParser(prog="python -m bench.loop.instructions", description=__doc__)
     ap.add_argument("--cycles", type=int, default=300)
-    ap.add_argument("--child", choices=["direct", "chain", "chain-traced"])
+    ap.add_argument("--child", choices=KINDS)
+    ap.add_argument(
+        "--kinds",
+        nargs="+",
+        choices=KINDS,
+        default=["direct", "chain", "chain-traced"],
+        help="what to count (chain-no-knowledge, chain-no-store: where the time goes)",
+    )
     a = ap.parse_args()
     if a.child:
         _child(a.child, a.cycles)
         return
-    print(measure(a.cycles))
+    print(measure(a.cycles, tuple(a.kinds)))
 
 
 if __name__ == "__main__":

@@ -31,12 +31,12 @@ PAYLOAD = b"\x00" * 4500
 """About the size of the race's 360-beam scan as msgpack."""
 
 
-def _config(*, listen: str = "", connect: str = "") -> zenoh.Config:
+def _config(*, listen: str = "", connect: str | list[str] = "") -> zenoh.Config:
     conf: dict[str, Any] = {"mode": "peer", "scouting": {"multicast": {"enabled": False}}}
     if listen:
         conf["listen"] = {"endpoints": [listen]}
     if connect:
-        conf["connect"] = {"endpoints": [connect]}
+        conf["connect"] = {"endpoints": [connect] if isinstance(connect, str) else connect}
     return zenoh.Config.from_json5(json.dumps(conf))
 
 
@@ -105,18 +105,140 @@ def zenoh_echo(rate: float, cycles: int, warmup: int = 20) -> dict[str, Any]:
             "latencies_ns": lat,
         }
     finally:
+        _stop([child])
+        session.close()
+
+
+RELAY = "race/floor/relay"
+RELAY_CMD = (sys.executable, "-m", "bench.loop.transport", "relay")
+STAGES = 5
+
+
+def _relay(index: int, listen: str, connect: list[str]) -> None:
+    """Stage ``index`` of the relay floor: a sample on ``relay/<index>`` wakes this
+    process's asyncio loop (uvloop, as RAP's processes run), which puts it on the next
+    key from the loop: what one RAP stage in its own process pays at least, with no
+    envelope, no decoding and no knowledge."""
+    import asyncio
+
+    import uvloop
+
+    async def run() -> None:
+        loop = asyncio.get_running_loop()
+        session = zenoh.open(_config(listen=listen, connect=connect))
+        nxt = f"{RELAY}/{index + 1}" if index + 1 < STAGES else f"{RELAY}/back"
+        pub = session.declare_publisher(nxt)
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            data = sample.payload.to_bytes()  # on Zenoh's thread: hand it to the loop
+            loop.call_soon_threadsafe(pub.put, data)
+
+        session.declare_subscriber(
+            f"{RELAY}/{index}", zenoh.handlers.Callback(on_sample, indirect=False)
+        )
+        sys.stdout.write("ready\n")
+        sys.stdout.flush()
+        await loop.run_in_executor(None, sys.stdin.read)  # until the parent closes it
+        session.close()
+
+    uvloop.run(run())
+
+
+def zenoh_relay(rate: float, cycles: int, warmup: int = 20) -> dict[str, Any]:
+    """The transport floor of the five-process loop: six cross-process hops (robot ->
+    five relay processes, each woken in its event loop -> robot) on raw Zenoh, all
+    sessions meshed with each other; lost after 1 s, as ``zenoh_echo``."""
+    ports = [free_port() for _ in range(STAGES + 1)]
+    ends = [f"tcp/127.0.0.1:{p}" for p in ports]
+    session = zenoh.open(_config(listen=ends[0]))
+    children = []
+    try:
+        children.extend(
+            subprocess.Popen(
+                [*RELAY_CMD, str(i), ends[i + 1], *ends[: i + 1]],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                text=True,
+            )
+            for i in range(STAGES)
+        )
+        for child in children:
+            assert child.stdout is not None
+            if child.stdout.readline().strip() != "ready":
+                raise RuntimeError("a zenoh relay process did not start")
+        return _round_trips(session, f"{RELAY}/0", f"{RELAY}/back", rate, cycles, warmup)
+    finally:
+        _stop(children)
+        session.close()
+
+
+def _stop(children: list[subprocess.Popen[str]]) -> None:
+    """Close the children's stdin (they end), wait for them, close their pipes."""
+    for child in children:
         if child.stdin is not None:
             child.stdin.close()
+    for child in children:
         try:
             child.wait(timeout=10)
         except subprocess.TimeoutExpired:
             child.kill()
             child.wait()
-        session.close()
+        if child.stdout is not None:
+            child.stdout.close()
+
+
+def _round_trips(
+    session: zenoh.Session, out: str, back: str, rate: float, cycles: int, warmup: int
+) -> dict[str, Any]:
+    got = threading.Event()
+    arrived = [0]
+
+    def on_back(_: zenoh.Sample) -> None:
+        arrived[0] = time.perf_counter_ns()
+        got.set()
+
+    session.declare_subscriber(back, zenoh.handlers.Callback(on_back, indirect=False))
+    pub = session.declare_publisher(out)
+    deadline = time.monotonic() + 10.0
+    while True:  # the whole chain is connected: a probe comes back
+        got.clear()
+        pub.put(PAYLOAD)
+        if got.wait(0.2):
+            break
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"nothing came back on {back} from {out} within 10 s")
+    lat: list[int] = []
+    lost = 0
+    period = 1.0 / rate
+    start = time.perf_counter()
+    for i in range(warmup + cycles):
+        delay = start + i * period - time.perf_counter()
+        if delay > 0:
+            time.sleep(delay)
+        got.clear()
+        t = time.perf_counter_ns()
+        pub.put(PAYLOAD)
+        if not got.wait(1.0):
+            lost += i >= warmup
+            continue
+        if i >= warmup:
+            lat.append(arrived[0] - t)
+    return {
+        "rate_hz": rate,
+        "sent": cycles,
+        "received": len(lat),
+        "lost": lost,
+        "latencies_ns": lat,
+    }
 
 
 if __name__ == "__main__":
     if sys.argv[1:2] == ["echo"] and len(sys.argv) == 4 and sys.argv[2] == "--connect":
         _echo(sys.argv[3])
+    elif sys.argv[1:2] == ["relay"] and len(sys.argv) >= 5:
+        _relay(int(sys.argv[2]), sys.argv[3], sys.argv[4:])
     else:
-        sys.exit("usage: python -m bench.loop.transport echo --connect ENDPOINT")
+        sys.exit(
+            "usage: python -m bench.loop.transport echo --connect ENDPOINT\n"
+            "       python -m bench.loop.transport relay INDEX LISTEN CONNECT..."
+        )
