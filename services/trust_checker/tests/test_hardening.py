@@ -370,3 +370,41 @@ def test_decode_json_checks_depth_before_converting(depth: int) -> None:
         doc = [doc]
     with pytest.raises(CodecError, match="more than 32 levels deep"):
         decode_json(doc)
+
+
+@pytest.mark.anyio
+async def test_a_refused_spec_with_a_huge_line_makes_a_short_status_and_ticks_go_on() -> None:
+    """A spec of the largest size allowed, one line deep in parentheses: refused, and what
+    comes back (and goes to the log) quotes an excerpt of the line, not the line."""
+    from trust_checker.errors import EXCERPT
+    from trust_checker.io.specs import MAX_SPEC_CHARS
+
+    bus = MemoryBus()
+    sealer = Sealer("operator")
+    swap_key = keys.admin(SYS, NODE, "swap")
+    config = ServiceConfig(node=NODE, fabric=FabricConfig(system=SYS))
+    line = "out b: Int\nb = " + "(" * (MAX_SPEC_CHARS - 40)
+    async with (
+        MemoryFabric(bus=bus) as peer,
+        MemoryFabric(bus=bus) as fab,
+        open_service(config, load_text(SPEC), fabric=fab) as service,
+    ):
+        update, _ = sealer.seal_message(swap_key, TrustSpecUpdate(spec=line))
+        (reply,) = await peer.query(swap_key, update, timeout=10.0)
+        status = _open_status(reply.payload).body
+        assert not status.ok
+        assert status.problems
+        assert all(len(p) < 2 * EXCERPT + 400 for p in status.problems)
+        assert service.session.stats.swaps_rejected == 1
+
+
+def test_a_problem_quotes_an_excerpt_of_a_long_line_with_the_caret_in_place() -> None:
+    from trust_checker.errors import EXCERPT, Problem
+
+    text = "x" * 5000 + "@" + "y" * 5000
+    shown = str(Problem("spec", 2, 5001, "unexpected character '@'", text)).splitlines()
+    assert len(shown[1]) <= 4 + EXCERPT + 6
+    caret = shown[2].index("^")
+    assert shown[1][caret] == "@"
+    short = str(Problem("spec", 1, 3, "bad", "ab@cd")).splitlines()
+    assert short[1:] == ["    ab@cd", "      ^"]

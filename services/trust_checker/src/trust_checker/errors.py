@@ -40,10 +40,29 @@ class Problem:
     def __str__(self) -> str:
         out = f"{self.path}:{self.line}:{self.col}: {self.message}"
         if self.text:
-            out += f"\n    {self.text}\n    {' ' * max(self.col - 1, 0)}^"
+            text, caret = _excerpt(self.text, max(self.col - 1, 0))
+            out += f"\n    {text}\n    {' ' * caret}^"
         if self.hint:
             out += f"\n    hint: {self.hint}"
         return out
+
+
+EXCERPT = 120
+"""The most characters of a source line shown under a problem (a long line is cut
+around the column, marked with '...'): a refused spec from the network never makes a
+message, a log line or a status record as long as its own lines."""
+
+
+def _excerpt(text: str, at: int) -> tuple[str, int]:
+    """``text`` cut to at most ``EXCERPT`` characters around index ``at``, and where
+    ``at`` is in the cut."""
+    if len(text) <= EXCERPT:
+        return text, at
+    start = min(max(0, at - EXCERPT // 2), len(text) - EXCERPT)
+    end = start + EXCERPT
+    head = "..." if start > 0 else ""
+    tail = "..." if end < len(text) else ""
+    return f"{head}{text[start:end]}{tail}", at - start + len(head)
 
 
 class SpecError(TrustError):

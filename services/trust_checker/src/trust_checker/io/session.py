@@ -348,7 +348,9 @@ class Session:
     async def _swap(self, req: SwapRequest) -> None:
         problems: list[str] = []
         try:
-            spec = self.loader(req.text, req.path)
+            # parsed and checked on a worker thread: a large spec from the network
+            # (up to MAX_SPEC_CHARS) must not stop the ticks and the other requests
+            spec = await anyio.to_thread.run_sync(self.loader, req.text, req.path)
             if self.explainer is not None:
                 explainer = self.explainer.swap(spec)
                 new: RunnerLike = explainer.runner
@@ -379,10 +381,12 @@ class Session:
             )
         else:
             self.stats.swaps_rejected += 1
-            log.warning(
+            self._warn(  # a flood of bad updates is logged at most once a second
+                "swap",
                 "spec update from %s refused, the running spec stays:\n%s",
                 req.origin or "?",
-                "\n".join(problems),
+                "\n".join(problems[:5])
+                + (f"\n(and {len(problems) - 5} more)" if len(problems) > 5 else ""),
             )
         status = TrustSpecStatus(
             ok=ok,
