@@ -67,43 +67,7 @@ def zenoh_echo(rate: float, cycles: int, warmup: int = 20) -> dict[str, Any]:
         assert child.stdout is not None
         if child.stdout.readline().strip() != "ready":
             raise RuntimeError("the zenoh echo process did not start")
-        back = threading.Event()
-        arrived = [0]
-
-        def on_pong(_: zenoh.Sample) -> None:
-            arrived[0] = time.perf_counter_ns()
-            back.set()
-
-        session.declare_subscriber(PONG, zenoh.handlers.Callback(on_pong, indirect=False))
-        pub = session.declare_publisher(PING)
-        deadline = time.monotonic() + 10.0
-        while not pub.matching_status.matching:  # the child's subscriber reached us
-            if time.monotonic() > deadline:
-                raise RuntimeError("the zenoh echo process never subscribed")
-            time.sleep(0.01)
-        lat: list[int] = []
-        lost = 0
-        period = 1.0 / rate
-        start = time.perf_counter()
-        for i in range(warmup + cycles):
-            delay = start + i * period - time.perf_counter()
-            if delay > 0:
-                time.sleep(delay)
-            back.clear()
-            t = time.perf_counter_ns()
-            pub.put(PAYLOAD)
-            if not back.wait(1.0):
-                lost += i >= warmup
-                continue
-            if i >= warmup:
-                lat.append(arrived[0] - t)
-        return {
-            "rate_hz": rate,
-            "sent": cycles,
-            "received": len(lat),
-            "lost": lost,
-            "latencies_ns": lat,
-        }
+        return _round_trips(session, PING, PONG, rate, cycles, warmup)
     finally:
         _stop([child])
         session.close()

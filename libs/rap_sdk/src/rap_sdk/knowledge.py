@@ -412,19 +412,14 @@ class KnowledgeClient:
             )
         rec = self._record(key, msgspec.Raw(encoded), False)
         if durable or expect is not None:
-            return await self._submit(rec, durable, expect, value)
-        stream = self._kb_keys.get(key) or self._kb_key(key)
-        out = self.sealer.seal_out(stream, rec)
-        out.group = self._group
-        await self.fabric.publish(stream, out)
-        refused = self._adopt(rec, value)
-        if refused:
-            for other, rejection in refused:
-                await other._rejected(rejection)
-        return rec.version
+            return await self._submit(rec, expect, value)
+        return await self._stream(rec, value)
 
     async def delete(self, key: str, *, durable: bool = False, expect: int | None = None) -> int:
-        return await self._submit(self._record(key, _NIL, True), durable, expect, None)
+        rec = self._record(key, _NIL, True)
+        if durable or expect is not None:
+            return await self._submit(rec, expect, None)
+        return await self._stream(rec, None)
 
     def _record(self, key: str, value: msgspec.Raw, deleted: bool) -> KbRecord:
         if key not in self._valid:
@@ -438,28 +433,38 @@ class KnowledgeClient:
             deleted=deleted,
         )
 
-    async def _submit(self, rec: KbRecord, durable: bool, expect: int | None, value: Any) -> int:
+    async def _submit(self, rec: KbRecord, expect: int | None, value: Any) -> int:
         """Durable (or compare-and-set, ``expect`` given): through the service and
-        acknowledged; else out on the write stream. Replicas here and in co-located
-        clients get the record (and ``value``, when it is a frozen Struct) directly."""
-        if durable or expect is not None:
-            # the service stores it within its budget or never, and answers before this
-            # client stops waiting: a write reported failed is never stored later
-            budget = max(1, int(self.timeout * DURABLE_BUDGET * 1000))
-            reply = await self._ask(rec.key, KbPut(record=rec, expect=expect, budget_ms=budget))
-            if reply.version != rec.version:  # the service moved it past the current one
-                rec = msgspec.structs.replace(rec, version=reply.version)
-            self.clock.observe(reply.version)
-        else:
-            key = self._kb_key(rec.key)
-            out = self.sealer.seal_out(key, rec)
-            out.group = self._group
-            await self.fabric.publish(key, out)
+        acknowledged. Replicas here and in co-located clients then get the record (and
+        ``value``, when it is a frozen Struct) directly."""
+        # the service stores it within its budget or never, and answers before this
+        # client stops waiting: a write reported failed is never stored later
+        budget = max(1, int(self.timeout * DURABLE_BUDGET * 1000))
+        reply = await self._ask(rec.key, KbPut(record=rec, expect=expect, budget_ms=budget))
+        if reply.version != rec.version:  # the service moved it past the current one
+            rec = msgspec.structs.replace(rec, version=reply.version)
+        self.clock.observe(reply.version)
         refused = self._adopt(rec, value)
         if refused:
-            for other, rejection in refused:
-                await other._rejected(rejection)
+            await self._publish_refused(refused)
         return rec.version
+
+    async def _stream(self, rec: KbRecord, value: Any) -> int:
+        """Out on the write stream (encoded once, for the service and other processes);
+        replicas here and in co-located clients get it directly."""
+        stream = self._kb_keys.get(rec.key) or self._kb_key(rec.key)
+        out = self.sealer.seal_out(stream, rec)
+        out.group = self._group
+        await self.fabric.publish(stream, out)
+        refused = self._adopt(rec, value)
+        if refused:
+            await self._publish_refused(refused)
+        return rec.version
+
+    @staticmethod
+    async def _publish_refused(refused: list[tuple[KnowledgeClient, Rejection]]) -> None:
+        for other, rejection in refused:
+            await other._rejected(rejection)
 
     def _adopt(self, rec: KbRecord, value: Any) -> list[tuple[KnowledgeClient, Rejection]] | None:
         """Hand a record this client wrote to the co-located clients' replicas and to its
