@@ -72,7 +72,7 @@ def _child(kind: str, cycles: int) -> None:
 def _no_knowledge() -> None:
     """Where the time goes: handlers' reads and writes on a dict instead of knowledge
     (no record, no stream, no service, no replica; the envelopes carry no versions)."""
-    from rap_sdk.runtime import ContextKnowledge
+    from rap_sdk import ContextKnowledge
 
     values: dict[str, Any] = {}
 

@@ -18,7 +18,15 @@ from dataclasses import dataclass
 
 from rap_schemas.yamlconf import YamlError
 
-__all__ = ["EvalError", "InputError", "Problem", "SpecError", "TextFileError", "TrustError"]
+__all__ = [
+    "EXCERPT",
+    "EvalError",
+    "InputError",
+    "Problem",
+    "SpecError",
+    "TextFileError",
+    "TrustError",
+]
 
 
 class TrustError(Exception):
