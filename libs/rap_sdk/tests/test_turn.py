@@ -4,6 +4,7 @@ order, and never lost to a waiter that was cancelled."""
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Awaitable, Callable
 
 import pytest
 from rap_sdk.runtime import Turn
@@ -30,7 +31,8 @@ async def test_waiters_get_the_turn_in_order_and_a_direct_taker_cannot_overtake(
     assert not turn.held
 
 
-async def test_a_cancelled_waiter_is_skipped() -> None:
+def _held() -> tuple[Turn, list[str], Callable[[str], Awaitable[None]]]:
+    """A turn held (as direct dispatch holds it), and waiters that note their name."""
     turn = Turn()
     turn.held = True
     got: list[str] = []
@@ -39,6 +41,11 @@ async def test_a_cancelled_waiter_is_skipped() -> None:
         async with turn:
             got.append(name)
 
+    return turn, got, take
+
+
+async def test_a_cancelled_waiter_is_skipped() -> None:
+    turn, got, take = _held()
     first = asyncio.create_task(take("cancelled"))
     second = asyncio.create_task(take("second"))
     await asyncio.sleep(0)
@@ -52,14 +59,7 @@ async def test_a_cancelled_waiter_is_skipped() -> None:
 
 
 async def test_a_waiter_cancelled_after_it_was_handed_the_turn_passes_it_on() -> None:
-    turn = Turn()
-    turn.held = True
-    got: list[str] = []
-
-    async def take(name: str) -> None:
-        async with turn:
-            got.append(name)
-
+    turn, got, take = _held()
     first = asyncio.create_task(take("first"))
     second = asyncio.create_task(take("second"))
     await asyncio.sleep(0)
