@@ -22,6 +22,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import os
 import socket
 from collections.abc import Callable, Iterator
 from time import monotonic
@@ -60,7 +61,16 @@ from .handoff import LoopHandoff
 
 __all__ = ["ZenohConfig", "ZenohFabric"]
 
+RUNTIME_ENV = "ZENOH_RUNTIME"
+
 log = logging.getLogger(__name__)
+
+
+LEAN_RUNTIME = (
+    "(rx: (worker_threads: 1), tx: (handover: rx), net: (handover: rx), "
+    "acc: (handover: rx), app: (handover: rx))"
+)
+"""All of Zenoh's tasks on one worker thread (see ``ZenohConfig.runtime``)."""
 
 
 class ZenohConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
@@ -86,6 +96,14 @@ class ZenohConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_on
     """Queries waiting for a worker before new ones get an 'overloaded' error reply."""
     extra: dict[str, Any] = {}
     """Further Zenoh configuration, merged at top level (e.g. ``transport``)."""
+    runtime: str | None = LEAN_RUNTIME
+    """Zenoh's thread pools in this process, in the syntax of Zenoh's ``ZENOH_RUNTIME``
+    setting. The default hands every pool to one worker thread: each sample then wakes
+    one thread at each end instead of several, which on a small machine cuts the CPU a
+    message costs and the latency of a cross-process hop (``make bench-loop``). ``None``
+    keeps Zenoh's own pools. It applies to the whole process and is read when the
+    process's first session opens: a ``ZENOH_RUNTIME`` environment variable, or an
+    earlier session, wins. Processes started from this one inherit it."""
 
     def to_json5(self) -> str:
         conf: dict[str, Any] = {
@@ -212,12 +230,22 @@ class ZenohFabric:
             zconf = zenoh.Config.from_json5(config.to_json5())
         except zenoh.ZError as exc:
             raise FabricError(f"invalid Zenoh configuration: {exc}") from None
+        if self.config.runtime is not None and RUNTIME_ENV not in os.environ:
+            os.environ[RUNTIME_ENV] = self.config.runtime  # read once, at the first open
         try:
             session = await anyio.to_thread.run_sync(zenoh.open, zconf)
         except zenoh.ZError as exc:
             raise FabricError(
                 f"cannot open a Zenoh session (listen={self.config.listen}, "
                 f"connect={self.config.connect}): {exc}"
+            ) from None
+        except BaseException as exc:  # Zenoh panics on a runtime setting it cannot parse
+            if type(exc).__name__ != "PanicException":
+                raise
+            raise FabricError(
+                f"Zenoh could not start its threads with {RUNTIME_ENV}="
+                f"{os.environ.get(RUNTIME_ENV)!r} (ZenohConfig.runtime or the environment "
+                f"variable): {exc}; fix or unset it"
             ) from None
         try:
             await self._life.open()

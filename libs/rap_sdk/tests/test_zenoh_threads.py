@@ -1,0 +1,68 @@
+"""Zenoh's thread pools (``ZenohConfig.runtime``), each case in a fresh process: the
+setting is read once per process, when its first session opens."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+PROBE = """
+import os, sys, anyio
+from rap_sdk import ZenohConfig, ZenohFabric
+from rap_sdk.errors import FabricError
+
+async def main(runtime):
+    kw = {} if runtime == "default" else {"runtime": None}
+    try:
+        async with ZenohFabric(ZenohConfig(**kw)):
+            names = sorted(
+                open(f"/proc/self/task/{t}/comm").read().strip()
+                for t in os.listdir("/proc/self/task")
+            )
+    except FabricError as exc:
+        print("error:", exc)
+        return
+    print(" ".join(n for n in names if n[:3] in ("rx-", "tx-", "net", "acc", "app")))
+
+anyio.run(main, sys.argv[1])
+"""
+
+
+def _zenoh_threads(runtime: str, env_value: str | None = None) -> str:
+    env = {k: v for k, v in os.environ.items() if k != "ZENOH_RUNTIME"}
+    if env_value is not None:
+        env["ZENOH_RUNTIME"] = env_value
+    out = subprocess.run(
+        [sys.executable, "-c", PROBE, runtime],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=True,
+    )
+    return out.stdout.strip()
+
+
+def test_default_runs_zenoh_on_one_worker_thread() -> None:
+    assert _zenoh_threads("default").split() == ["rx-0"]
+
+
+def test_runtime_none_keeps_zenohs_own_pools() -> None:
+    names = _zenoh_threads("none").split()  # a pool's threads start when first used
+    assert "acc-0" in names
+    assert "app-0" in names
+    assert "rx-0" not in names
+
+
+def test_environment_variable_wins() -> None:
+    names = _zenoh_threads("default", "(app: (worker_threads: 2))").split()
+    assert "app-0" in names
+    assert "app-1" in names
+
+
+def test_unparseable_setting_is_an_error_that_names_it() -> None:
+    out = _zenoh_threads("default", "two threads please")
+    assert out.startswith("error: Zenoh could not start its threads with ZENOH_RUNTIME=")
+    assert "'two threads please'" in out
+    assert "fix or unset it" in out
