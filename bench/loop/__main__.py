@@ -231,7 +231,9 @@ ROWS_EXPLAINED = [
     "in between: what the loop's own logic costs with caches as cold as a paced cycle "
     "finds them.",
     "- `zenoh-echo`: two cross-process hops on raw Zenoh (robot -> echo -> robot), "
-    "answered inside Zenoh's callback thread: no event loop at either end, no RAP code.",
+    "answered inside Zenoh's callback thread: no event loop at either end, no RAP code. "
+    "Both raw-Zenoh rows run Zenoh's tasks on one worker thread, as RAP's processes do "
+    "(`ZenohConfig.runtime`).",
     "- `zenoh-relay`: the five-process layout's transport floor on raw Zenoh: the "
     "robot -> five relay processes -> robot (six cross-process hops, all sessions "
     "meshed), each relay woken in its asyncio loop (uvloop) and putting the sample on "
