@@ -24,7 +24,7 @@ the scan that caused them, whatever the host's speed: a deterministic run.
 
     async with open_service(SimConfig(world="corridor", duration=30), fabric=fabric) as s:
         await s.finished.wait()
-    print(s.summary().render())
+    report = s.summary().render()  # a text table of the run
 """
 
 from __future__ import annotations
