@@ -7,7 +7,7 @@ import subprocess
 import sys
 import time
 
-from bench.loop.threads import _processes, _snapshot
+from bench.loop.threads import _expected, _processes, _snapshot
 
 
 def test_finds_runner_children_and_counts_their_cpu() -> None:
@@ -33,3 +33,8 @@ def test_finds_runner_children_and_counts_their_cpu() -> None:
         assert child.stdin is not None
         child.stdin.close()
         child.wait(timeout=10)
+
+
+def test_expects_a_runner_per_compute_node_the_service_and_the_robot() -> None:
+    assert _expected("rap-5proc") == 7
+    assert _expected("rap-1proc") == 3

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import anyio
+import yaml
 
 from .rap import PLANS, run_rap
 
@@ -95,18 +96,36 @@ def _snapshot(procs: dict[int, str]) -> dict[tuple[str, str], tuple[int, int]]:
     return {k: (v[0], v[1]) for k, v in totals.items()}
 
 
-def measure(variant: str, rate: float, seconds: float) -> dict[str, Any]:
-    settle = 3.0
-    cycles = int(rate * (settle + seconds + 2.0))
+def _expected(variant: str) -> int:
+    """Processes of ``variant``'s deployment: a runner per compute node, the knowledge
+    service and this one (the robot)."""
+    plan = yaml.safe_load(PLANS[variant].read_text())
+    return len(plan["compute_nodes"]) + 2
+
+
+def measure(variant: str, rate: float, seconds: float, settle: float = 3.0) -> dict[str, Any]:
+    """The round lasts the window, ``settle`` s before it (the loop past its first
+    cycles) and a margin for the robot's start; a window that the round does not cover
+    whole is an error, not a figure."""
+    cycles = int(rate * (settle + seconds + 5.0))
     window: dict[str, Any] = {}
 
     def watch() -> None:
-        time.sleep(settle + 8.0)  # deployed (a few seconds) and past the warm-up
-        procs = _processes()
+        deadline = time.monotonic() + 60.0
+        while len(procs := _processes()) < _expected(variant):  # deployed yet?
+            if time.monotonic() > deadline:
+                window["error"] = f"{variant}'s processes did not all start within 60 s"
+                return
+            time.sleep(0.2)
+        time.sleep(settle)
         a, t0 = _snapshot(procs), time.monotonic()
         time.sleep(seconds)
         b, t1 = _snapshot(procs), time.monotonic()
+        if set(a) != set(b):
+            window["error"] = "a process of the loop ended inside the measuring window"
+            return
         n = (t1 - t0) * rate
+        window["end"] = t1
         window["rows"] = [
             {
                 "process": k[0],
@@ -115,7 +134,6 @@ def measure(variant: str, rate: float, seconds: float) -> dict[str, Any]:
                 "runs_per_cycle": round((b[k][1] - a[k][1]) / n, 1),
             }
             for k in sorted(b)
-            if k in a
         ]
 
     watcher = threading.Thread(target=watch, daemon=True)
@@ -130,9 +148,12 @@ def measure(variant: str, rate: float, seconds: float) -> dict[str, Any]:
             Path(logs),
             backend_options={"use_uvloop": True},
         )[0]
-    watcher.join(timeout=seconds + 30)
-    if "rows" not in window:
-        raise RuntimeError("the round ended before the measuring window did: raise --seconds")
+    round_end = time.monotonic()
+    watcher.join(timeout=seconds + settle + 70.0)
+    if "error" in window:
+        raise RuntimeError(window["error"])
+    if window.get("end", round_end + 1) > round_end:
+        raise RuntimeError("the round ended before the measuring window did")
     lat = sorted(res["latencies_ns"])
     return {
         "variant": variant,

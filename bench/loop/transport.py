@@ -17,7 +17,6 @@ another process pays one more hop.
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 import threading
@@ -31,14 +30,6 @@ from rap_sdk.fabric import free_port
 PING, PONG = "race/floor/ping", "race/floor/pong"
 PAYLOAD = b"\x00" * 4500
 """About the size of the race's 360-beam scan as msgpack."""
-
-
-def _lean_threads() -> None:
-    """Zenoh's threads as RAP's processes run them (``ZenohConfig.runtime``), here and in
-    the child processes, so that the floors and the RAP rows pay the same per message."""
-    runtime = ZenohConfig().runtime
-    if runtime is not None:
-        os.environ.setdefault("ZENOH_RUNTIME", runtime)
 
 
 def _config(*, listen: str = "", connect: str | list[str] = "") -> zenoh.Config:
@@ -65,7 +56,7 @@ def _echo(connect: str) -> None:
 def zenoh_echo(rate: float, cycles: int, warmup: int = 20) -> dict[str, Any]:
     """Round trips at ``rate`` Hz on absolute deadlines; a round trip not back within
     1 s is counted as lost."""
-    _lean_threads()
+    ZenohConfig().use_runtime()  # Zenoh's threads as in RAP's processes, children too
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     session = zenoh.open(_config(listen=endpoint))
     child = subprocess.Popen(
@@ -123,7 +114,7 @@ def zenoh_relay(rate: float, cycles: int, warmup: int = 20) -> dict[str, Any]:
     """The transport floor of the five-process loop: six cross-process hops (robot ->
     five relay processes, each woken in its event loop -> robot) on raw Zenoh, all
     sessions meshed with each other; lost after 1 s, as ``zenoh_echo``."""
-    _lean_threads()
+    ZenohConfig().use_runtime()  # Zenoh's threads as in RAP's processes, children too
     ports = [free_port() for _ in range(STAGES + 1)]
     ends = [f"tcp/127.0.0.1:{p}" for p in ports]
     session = zenoh.open(_config(listen=ends[0]))

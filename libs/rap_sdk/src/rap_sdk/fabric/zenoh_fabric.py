@@ -105,6 +105,12 @@ class ZenohConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_on
     process's first session opens: a ``ZENOH_RUNTIME`` environment variable, or an
     earlier session, wins. Processes started from this one inherit it."""
 
+    def use_runtime(self) -> None:
+        """Give this process's Zenoh the thread pools of :attr:`runtime`, unless the
+        environment names its own; it takes effect if no session has opened yet."""
+        if self.runtime is not None and RUNTIME_ENV not in os.environ:
+            os.environ[RUNTIME_ENV] = self.runtime
+
     def to_json5(self) -> str:
         conf: dict[str, Any] = {
             "mode": self.mode,
@@ -230,8 +236,7 @@ class ZenohFabric:
             zconf = zenoh.Config.from_json5(config.to_json5())
         except zenoh.ZError as exc:
             raise FabricError(f"invalid Zenoh configuration: {exc}") from None
-        if self.config.runtime is not None and RUNTIME_ENV not in os.environ:
-            os.environ[RUNTIME_ENV] = self.config.runtime  # read once, at the first open
+        self.config.use_runtime()  # read once, at the process's first open
         try:
             session = await anyio.to_thread.run_sync(zenoh.open, zconf)
         except zenoh.ZError as exc:
