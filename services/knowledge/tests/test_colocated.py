@@ -7,6 +7,7 @@ import math
 from collections.abc import Callable
 
 import anyio
+import msgspec
 import pytest
 from knowledge.app import open_service
 from knowledge.config import KnowledgeConfig
@@ -188,13 +189,13 @@ async def test_local_writes_keep_their_order_when_the_service_is_busy() -> None:
         KnowledgeClient(fabric=fabric, system=SYSTEM, writer="w") as w,
     ):
         applied: list[int] = []
-        store_apply = svc.store.apply
+        store_apply = svc.store.apply_now  # type: ignore[attr-defined]
 
-        async def apply(rec, **kw):  # type: ignore[no-untyped-def]
+        def apply(rec, **kw):  # type: ignore[no-untyped-def]
             applied.append(rec.version)
-            return await store_apply(rec, **kw)
+            return store_apply(rec, **kw)
 
-        svc.store.apply = apply  # type: ignore[method-assign]
+        svc.store.apply_now = apply  # type: ignore[attr-defined]  # both ways store through it
         svc._taking += 1  # as if a record were being stored: the next ones queue
         first = await w.write("a", 1)
         svc._taking -= 1
@@ -204,3 +205,63 @@ async def test_local_writes_keep_their_order_when_the_service_is_busy() -> None:
         assert applied == [first, second]
         third = await w.write("a", 3)  # idle again: stored at once
         assert applied == [first, second, third]
+
+
+def count_stream_publishes(fabric: MemoryFabric) -> list[str]:
+    """The keys of knowledge stream records ``fabric`` publishes from now on."""
+    sent: list[str] = []
+    publish = fabric.publish
+
+    async def counted(key, payload, **kw):  # type: ignore[no-untyped-def]
+        if key.startswith(keys.kb(SYSTEM, "x")[:-1]):
+            sent.append(key)
+        return await publish(key, payload, **kw)
+
+    fabric.publish = counted  # type: ignore[method-assign]
+    return sent
+
+
+async def test_a_stream_only_the_colocated_service_receives_is_not_published() -> None:
+    """Co-located writer and service, nobody else on the stream: the record is stored in
+    the writer's task with no envelope and no sample (and replicas still get it)."""
+    async with (
+        MemoryFabric() as fabric,
+        open_service(KnowledgeConfig(system=SYSTEM), fabric=fabric) as svc,
+        KnowledgeClient(fabric=fabric, system=SYSTEM, writer="w") as w,
+        KnowledgeClient(fabric=fabric, system=SYSTEM, writer="r") as r,
+    ):
+        await r.read("a", default=None)  # a co-located replica of the key
+        sent = count_stream_publishes(fabric)
+        v = await w.write("a", 1)
+        assert sent == []
+        assert svc.stats.stream_applied == 1
+        assert (await svc.store.get("a")).version == v  # type: ignore[union-attr]
+        assert await r.read("a", min_version=v, timeout=0) == 1
+
+
+async def test_every_other_receiver_of_the_stream_still_gets_each_record() -> None:
+    """A subscriber in this process or in another one makes the writer publish again:
+    it gets every record, the service stores each once; when it goes, the intake
+    takes over again."""
+    bus = MemoryBus()
+    async with (
+        MemoryFabric(bus=bus) as fabric,
+        MemoryFabric(bus=bus) as elsewhere,
+        open_service(KnowledgeConfig(system=SYSTEM), fabric=fabric) as svc,
+        KnowledgeClient(fabric=fabric, system=SYSTEM, writer="w") as w,
+    ):
+        sent = count_stream_publishes(fabric)
+        for where in (fabric, elsewhere):
+            with where.subscribe(keys.kb(SYSTEM, "a")) as tap:
+                want = svc.stats.stream_applied + 3
+                for i in range(3):
+                    await w.write("a", i)
+                with anyio.fail_after(5):
+                    got = [await tap.get() for _ in range(3)]
+                assert [msgspec.msgpack.decode(s.payload)["body"]["key"] for s in got] == ["a"] * 3
+                await settled(lambda: svc.stats.stream_applied >= want)  # noqa: B023
+                assert svc.stats.stream_applied == want
+        assert len(sent) == 6
+        await w.write("a", 9)
+        assert len(sent) == 6  # nobody else again: not published
+        assert svc.stats.stream_applied == 7

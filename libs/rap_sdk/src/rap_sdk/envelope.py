@@ -75,6 +75,9 @@ class _UidSource:
         self._low = (self._low + 1) & _MASK62
         return _PACK(self._hi | self._counter, _VARIANT | self._low)
 
+    at = __call__
+    """The same as a method (cheaper to call than the instance itself)."""
+
 
 new_uid = _UidSource()
 _EMPTY: Final = Empty()
@@ -169,7 +172,7 @@ class Sealer:
         seqs[key] = seq + 1
         ts = self._now()
         env = OutgoingEnvelope(
-            uid=new_uid(ts),
+            uid=new_uid.at(ts),
             ts=ts,
             source=self.source,
             seq=seq,

@@ -21,9 +21,9 @@ import logging
 import time
 import weakref
 import zlib
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 from types import TracebackType
-from typing import Any, Final, TypeVar, overload
+from typing import Any, Final, Protocol, TypeVar, overload
 
 import anyio
 import msgspec
@@ -73,10 +73,12 @@ __all__ = [
     "OWN_WRITES",
     "SERVICE_NODE",
     "HybridClock",
+    "Intake",
     "KnowledgeClient",
     "KnowledgeError",
     "KnowledgeTypeError",
     "Versioned",
+    "join_colocated",
     "writer_tag",
 ]
 
@@ -141,8 +143,11 @@ class HybridClock:
         """Move ahead of ``version``, unless it claims a time more than ``MAX_DRIFT_MS``
         ahead of this clock (a broken writer must not drag every clock into the
         future; the service refuses such versions too)."""
-        if version > self._last and (version >> 20) <= (self._ms() - EPOCH_MS + MAX_DRIFT_MS):
-            self._last = version >> 8 << 8 | self.tag
+        if version > self._last:
+            now = self._now_ms
+            ms = now() if now is not None else time.time_ns() // 1_000_000
+            if (version >> 20) <= ms - EPOCH_MS + MAX_DRIFT_MS:
+                self._last = version >> 8 << 8 | self.tag
 
 
 class Versioned(msgspec.Struct, frozen=True):
@@ -215,10 +220,52 @@ class _Colocated:
     gets what was written with no decoding and no task woken up; the fabric then skips
     their replicas' subscriptions for it (``group``) and takes it to everyone else."""
 
-    __slots__ = ("clients",)
+    __slots__ = ("clients", "intake", "readers")
 
     def __init__(self) -> None:
         self.clients: list[KnowledgeClient] = []
+        self.readers: dict[str, list[KnowledgeClient]] = {}
+        """Key -> the clients that replicate it."""
+        self.intake: Intake | None = None
+        """The knowledge service of the system, when it runs in this process on the
+        same fabric and can store a record in the writer's task."""
+
+
+class Intake(Protocol):
+    """A co-located knowledge service's direct intake of the write stream."""
+
+    stream: Subscription
+    """Its subscription to the write stream."""
+
+    def take(self, rec: KbRecord) -> bool:
+        """Store ``rec`` (written in this process) now, in the caller's frame, or
+        return False when it cannot without waiting or overtaking what is queued:
+        the record then goes out on the stream."""
+        ...
+
+
+def join_colocated(fabric: Fabric, system: str, intake: Intake) -> Callable[[], None]:
+    """Make ``intake`` the co-located service of ``system`` on ``fabric``: writers
+    there whose stream nobody else receives hand it their records directly. Returns
+    the function that withdraws it."""
+    group = _colocated(fabric, system)
+    group.intake = intake
+
+    def leave() -> None:
+        if group.intake is intake:
+            group.intake = None
+
+    return leave
+
+
+def _colocated(fabric: Fabric, system: str) -> _Colocated:
+    by_system = _COLOCATED.get(fabric)
+    if by_system is None:
+        by_system = _COLOCATED[fabric] = {}
+    group = by_system.get(system)
+    if group is None:
+        group = by_system[system] = _Colocated()
+    return group
 
 
 _COLOCATED: weakref.WeakKeyDictionary[Any, dict[str, _Colocated]] = weakref.WeakKeyDictionary()
@@ -267,6 +314,9 @@ class KnowledgeClient:
         self._valid: set[str] = set()
         """Keys already checked (bounded)."""
         self._kb_keys: dict[str, str] = {}
+        self._receivers: dict[str, tuple[Sequence[Subscription], bool]] = {}
+        """Stream key -> its local subscriptions when last looked at, and whether the
+        co-located service and this group's replicas were all of them."""
         self._own: dict[str, KbRecord] = {}
         """This client's last write of each key it has not replicated (yet)."""
         self._policy = replica_policy or InboxPolicy(capacity=8, overflow=Overflow.LATEST)
@@ -290,12 +340,7 @@ class KnowledgeClient:
         """Tags whose every node's liveliness token went away."""
 
     async def __aenter__(self) -> KnowledgeClient:
-        by_system = _COLOCATED.get(self.fabric)
-        if by_system is None:
-            by_system = _COLOCATED[self.fabric] = {}
-        group = by_system.get(self.system)
-        if group is None:
-            group = by_system[self.system] = _Colocated()
+        group = _colocated(self.fabric, self.system)
         group.clients.append(self)
         self._group = group
         self._tg_cm = anyio.create_task_group()
@@ -349,8 +394,9 @@ class KnowledgeClient:
 
     def has_versions(self, promised: dict[str, int]) -> bool:
         """Whether :meth:`await_versions` would return at once."""
+        replicas = self._replicas
         for key, version in promised.items():
-            rep = self._replicas.get(key)
+            rep = replicas.get(key)
             if rep is not None and rep.version < version and self.writer_alive(version):
                 return False
         return True
@@ -378,8 +424,15 @@ class KnowledgeClient:
         for rep in self._replicas.values():
             if rep.sub is not None:
                 rep.sub.close()
-        if self in self._group.clients:
-            self._group.clients.remove(self)
+        group = self._group
+        if self in group.clients:
+            group.clients.remove(self)
+        for key in self._replicas:
+            readers = group.readers.get(key)
+            if readers is not None and self in readers:
+                readers.remove(self)
+                if not readers:
+                    del group.readers[key]
         assert self._tg is not None
         self._tg.cancel_scope.cancel()
         await self._tg_cm.__aexit__(et, ev, tb)
@@ -413,7 +466,17 @@ class KnowledgeClient:
         rec = self._record(key, msgspec.Raw(encoded), False)
         if durable or expect is not None:
             return await self._submit(rec, expect, value)
-        return await self._stream(rec, value)
+        # as _stream, one frame fewer
+        stream = self._kb_keys.get(key) or self._kb_key(key)
+        intake = self._group.intake
+        if intake is None or not self._only_intake(stream, intake) or not intake.take(rec):
+            out = self.sealer.seal_out(stream, rec)
+            out.group = self._group
+            await self.fabric.publish(stream, out)
+        refused = self._adopt(rec, value)
+        if refused:
+            await self._publish_refused(refused)
+        return rec.version
 
     async def delete(self, key: str, *, durable: bool = False, expect: int | None = None) -> int:
         rec = self._record(key, _NIL, True)
@@ -451,15 +514,34 @@ class KnowledgeClient:
 
     async def _stream(self, rec: KbRecord, value: Any) -> int:
         """Out on the write stream (encoded once, for the service and other processes);
-        replicas here and in co-located clients get it directly."""
+        replicas here and in co-located clients get it directly, and so does a
+        co-located service when nobody else receives the stream."""
         stream = self._kb_keys.get(rec.key) or self._kb_key(rec.key)
-        out = self.sealer.seal_out(stream, rec)
-        out.group = self._group
-        await self.fabric.publish(stream, out)
+        intake = self._group.intake
+        if intake is None or not self._only_intake(stream, intake) or not intake.take(rec):
+            out = self.sealer.seal_out(stream, rec)
+            out.group = self._group
+            await self.fabric.publish(stream, out)
         refused = self._adopt(rec, value)
         if refused:
             await self._publish_refused(refused)
         return rec.version
+
+    def _only_intake(self, stream: str, intake: Intake) -> bool:
+        """Whether the co-located service and this group's replicas are the only
+        receivers of ``stream`` (no other process, no other local subscription)."""
+        fabric = self.fabric
+        if fabric.has_subscribers(stream, remote_only=True):
+            return False
+        subs = fabric.local_subscribers(stream)
+        known = self._receivers.get(stream)
+        if known is not None and known[0] is subs:
+            return known[1]
+        group = self._group
+        only = all(s is intake.stream or s.group is group for s in subs)
+        if len(self._receivers) < 4096:
+            self._receivers[stream] = (subs, only)
+        return only
 
     @staticmethod
     async def _publish_refused(refused: list[tuple[KnowledgeClient, Rejection]]) -> None:
@@ -472,8 +554,8 @@ class KnowledgeClient:
         for the writer to publish."""
         shared = value is not None and _shareable(value)
         refused: list[tuple[KnowledgeClient, Rejection]] | None = None
-        for other in self._group.clients:
-            if other is not self and rec.key in other._replicas:
+        for other in self._group.readers.get(rec.key, ()):
+            if other is not self:
                 rejection = other._handed(rec, value if shared else None)
                 if rejection is not None:
                     refused = refused or []
@@ -622,6 +704,7 @@ class KnowledgeClient:
         if self._tg is None:
             raise LifecycleError("KnowledgeClient is not open: use 'async with'")
         rep = self._replicas[key] = _Replica(key, self._seen_tags)
+        self._group.readers.setdefault(key, []).append(self)
         rep.sub = self.fabric.subscribe(
             keys.kb(self.system, key), self._policy, prepare=self._decode_env, group=self._group
         )

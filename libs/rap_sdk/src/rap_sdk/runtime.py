@@ -470,9 +470,7 @@ class NodeRuntime:
         try:  # as _send_out, one frame fewer under every local handler it runs
             await self.fabric.publish(key, o, timeout=SEND_TIMEOUT)
         except BackpressureTimeout:
-            self.stats.sent += 1
             self._send_timed_out(key)
-            return
         self.stats.sent += 1
 
     async def _trace(
@@ -669,13 +667,27 @@ class NodeRuntime:
                 await self._trace(
                     route, phase, ctx, end if ctx._split else start, end - start, error, ctx.access
                 )
-            if ctx._out:  # what it sent before it failed goes out too, as it was sent
-                await self._send_queued(ctx)
+            out = ctx._out
+            if out:  # what it sent before it failed goes out too, as it was sent
+                if len(out) == 1:  # as _send_queued, one frame fewer under what it runs
+                    ctx._out = None
+                    key, o = out[0]
+                    try:
+                        await self.fabric.publish(key, o, timeout=SEND_TIMEOUT)
+                    except BackpressureTimeout:
+                        self._send_timed_out(key)
+                    self.stats.sent += 1
+                else:
+                    await self._send_queued(ctx)
         finally:
             if direct:
                 _depth[0] -= 1
                 self._calling -= 1
-                self._lock.release()
+                turn = self._lock
+                if turn._waiters:
+                    turn.release()
+                else:
+                    turn.held = False
 
     def _failed(self, route: Route, ctx: Context) -> None:
         """Count a handler's failure and log its traceback (at once, then at most one a

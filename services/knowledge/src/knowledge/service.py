@@ -43,7 +43,7 @@ from rap_sdk import Fabric, InboxPolicy, Opener, QueryRequest, RapError, Reply, 
 from rap_sdk.envelope import typed_decoder
 from rap_sdk.errors import LifecycleError, RejectedSample
 from rap_sdk.inbox import Overflow
-from rap_sdk.knowledge import SERVICE_NODE
+from rap_sdk.knowledge import SERVICE_NODE, join_colocated
 from rap_sdk.rejections import Rejections, Throttle
 from rap_sdk.runtime import refuse_running
 
@@ -109,14 +109,20 @@ class KnowledgeService:
             InboxPolicy(capacity=65536, overflow=Overflow.FIFO, block=True, max_bytes=256 << 20),
             prepare=_STREAM,
         )
-        if getattr(self.store, "immediate", False) and hasattr(stream, "direct"):
-            stream.direct = partial(self._direct, stream)
+        leave = None
+        if getattr(self.store, "immediate", False):
+            if hasattr(stream, "direct"):
+                stream.direct = partial(self._direct, stream)
+            if hasattr(self.store, "apply_now"):
+                leave = join_colocated(self.fabric, self.config.system, _Intake(self, stream))
         queryable = self.fabric.serve(pattern, self._answer)
         token = self.fabric.declare_token(keys.alive(self.config.system, NODE))
         try:
             task_status.started()
             await self._follow(stream)
         finally:
+            if leave is not None:
+                leave()
             token.undeclare()
             queryable.undeclare()
             stream.close()
@@ -144,33 +150,38 @@ class KnowledgeService:
         return self._take(sample)
 
     async def _take(self, sample: Sample) -> None:
-        self._taking += 1
-        try:
-            env = sample.obj  # a record written in this process: no decoding
-            local = env is not None and type(env.body) is KbRecord
-            if not local:
+        env = sample.obj  # a record written in this process: no decoding
+        local = env is not None and type(env.body) is KbRecord
+        if not local:
+            try:
                 env = self.opener.open_typed(
                     sample.key, sample.payload, _STREAM, KbRecord.TYPE, sample.prepared
                 )
-            if env is None or env.source == NODE:
-                return  # a duplicate, or our own republication of a durable write
-            rec: KbRecord = env.body
-            if sample.key != self._prefix + rec.key:
-                raise BadRequest(f"record for {rec.key!r} arrived on {sample.key!r}")
+            except RejectedSample as exc:
+                self.stats.stream_rejected += 1
+                await self._rejected(
+                    self.rejections.reject(sample.key, exc.reason, source=exc.source, type=exc.type)
+                )
+                return
+        if env is None or env.source == NODE:
+            return  # a duplicate, or our own republication of a durable write
+        await self._store(env.body, local, sample.key)
+
+    async def _store(self, rec: KbRecord, local: bool, key: str) -> None:
+        """Store a record that came on stream key ``key``."""
+        self._taking += 1
+        try:
+            if key != self._prefix + rec.key:
+                raise BadRequest(f"record for {rec.key!r} arrived on {key!r}")
             await self.store.apply(admit_record(rec, self.config.max_value_bytes, local=local))
             self.stats.stream_applied += 1
-        except RejectedSample as exc:
-            self.stats.stream_rejected += 1
-            await self._rejected(
-                self.rejections.reject(sample.key, exc.reason, source=exc.source, type=exc.type)
-            )
         except (BadRequest, TooLarge) as exc:
             self.stats.stream_rejected += 1
-            await self._rejected(self.rejections.reject(sample.key, str(exc)))
+            await self._rejected(self.rejections.reject(key, str(exc), source=rec.writer))
         except Exception as exc:  # the store failed: counted, logged, the stream goes on
             self.stats.stream_failed += 1
             if self._throttle.hit("store"):
-                log.error("write stream: could not store a record on %s: %s", sample.key, exc)
+                log.error("write stream: could not store a record on %s: %s", key, exc)
         finally:
             self._taking -= 1
 
@@ -378,3 +389,33 @@ class KnowledgeService:
         if not versions:
             raise NotFound(f"no model named {name!r} (under {MODELS_PREFIX}/)")
         return versions[-1].version
+
+
+class _Intake:
+    """The service's intake of records written by co-located clients (same process,
+    same fabric): stored in the writer's task, with no envelope, no sample and no task
+    woken, when the store applies at once (memory's ``apply_now``) and nothing is
+    queued or being stored; otherwise (and when the record is refused: the stream's
+    way words and counts the reason) the writer sends it on the stream as usual."""
+
+    __slots__ = ("_service", "stream")
+
+    def __init__(self, service: KnowledgeService, stream: Any) -> None:
+        self._service = service
+        self.stream: Any = stream
+        """The service's write-stream subscription (a local one: it has an inbox)."""
+
+    def take(self, rec: KbRecord) -> bool:
+        svc = self._service
+        inbox = self.stream.inbox
+        if svc._taking or inbox._items:
+            return False
+        try:
+            svc.store.apply_now(  # type: ignore[attr-defined]
+                admit_record(rec, svc.config.max_value_bytes, local=True)
+            )
+        except Exception:  # refused or failed: the stream's way words and counts it
+            return False
+        inbox.stats.accepted += 1
+        svc.stats.stream_applied += 1
+        return True

@@ -133,6 +133,7 @@ class Router:
     def __init__(self) -> None:
         self._subs: list[LocalSubscription] = []
         self._cache: dict[str, tuple[LocalSubscription, ...]] = {}
+        self.cached = self._cache.get
 
     def add(self, sub: LocalSubscription) -> None:
         self._subs.append(sub)
@@ -144,6 +145,8 @@ class Router:
             self._cache.clear()
 
     def matching(self, key: str) -> tuple[LocalSubscription, ...]:
+        """The subscriptions that match ``key`` (``cached(key) or matching(key)``
+        saves a call when it is cached and not empty)."""
         hit = self._cache.get(key)
         if hit is None:
             if len(self._cache) >= self._CACHE_MAX:

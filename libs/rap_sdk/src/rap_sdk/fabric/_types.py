@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator, Awaitable, Callable, Iterable
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterable, Sequence
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, Protocol, Self, runtime_checkable
@@ -61,7 +61,7 @@ class Outgoing:
 class Sample:
     """One sample as a subscriber sees it."""
 
-    __slots__ = ("_out", "_payload", "arrived", "key", "prepared", "remote")
+    __slots__ = ("_out", "_payload", "arrived", "key", "obj", "prepared", "remote")
 
     def __init__(
         self,
@@ -72,12 +72,16 @@ class Sample:
         arrived: float = 0.0,
     ) -> None:
         self.key = key
-        if isinstance(payload, Outgoing):
+        if type(payload) is Outgoing:
             self._out: Outgoing | None = payload
             self._payload: bytes | None = None
+            self.obj: Any = payload.obj
+            """For a sample published in this process: the sender's envelope object
+            (shared: never modify it); None for a sample that came as bytes."""
         else:
             self._out = None
-            self._payload = payload
+            self._payload = payload  # type: ignore[assignment]
+            self.obj = None
         self.remote = remote
         """True when the sample came from another session (process)."""
         self.prepared = prepared
@@ -98,12 +102,6 @@ class Sample:
             assert self._out is not None
             data = self._payload = self._out.data
         return data
-
-    @property
-    def obj(self) -> Any:
-        """For a sample published in this process: the sender's envelope object
-        (shared: never modify it); None for a sample that came as bytes."""
-        return self._out.obj if self._out is not None else None
 
     @property
     def size(self) -> int:
@@ -156,6 +154,8 @@ Prepare = Callable[[bytes], Any]
 
 class Subscription(Protocol):
     key_expr: str
+    group: object
+    """The ``group`` it was made with (see :meth:`Fabric.subscribe`)."""
 
     @property
     def stats(self) -> InboxStats: ...
@@ -239,6 +239,11 @@ class Fabric(Protocol):
     def has_subscribers(self, key: str, *, remote_only: bool = False) -> bool:
         """Whether a subscriber here or elsewhere (``remote_only``: elsewhere) matches
         ``key`` now (publishers may skip building samples nobody would receive)."""
+
+    def local_subscribers(self, key: str) -> Sequence[Subscription]:
+        """This session's own subscriptions that match ``key`` now (the same sequence
+        object while they do not change: callers may cache what they conclude from
+        it by its identity)."""
 
     def serve(self, key_expr: str, handler: QueryHandler) -> Queryable: ...
 

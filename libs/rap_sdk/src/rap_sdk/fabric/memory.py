@@ -185,9 +185,10 @@ class MemoryFabric:
             for sub in member._router.matching(key):
                 data = payload.data if isinstance(payload, Outgoing) else payload
                 sub.inbox.offer(sub.sample(key, data, True))
-        subs = self._router.matching(key) if local else ()
+        router = self._router
+        subs = (router.cached(key) or router.matching(key)) if local else ()
         if subs:
-            late = await self._router.deliver(subs, key, payload, timeout)
+            late = await router.deliver(subs, key, payload, timeout)
             if late is not None:
                 raise late
 
@@ -205,6 +206,11 @@ class MemoryFabric:
             if len(cache) < 4096:
                 cache[key] = hit
         return hit
+
+    def local_subscribers(self, key: str) -> tuple[LocalSubscription, ...]:
+        if not self._life.is_open:
+            self._life.check_open()
+        return self._router.matching(key)
 
     def subscribe(
         self,

@@ -354,9 +354,10 @@ class ZenohFabric:
                 cell.pub.put(payload.data if type(payload) is Outgoing else payload)
             except zenoh.ZError as exc:
                 raise FabricError(f"publish on {key!r} failed: {exc}") from None
-        subs = self._router.matching(key) if local else ()
+        router = self._router
+        subs = (router.cached(key) or router.matching(key)) if local else ()
         if subs:
-            late = await self._router.deliver(subs, key, payload, timeout)
+            late = await router.deliver(subs, key, payload, timeout)
             if late is not None:
                 raise late
 
@@ -397,6 +398,11 @@ class ZenohFabric:
         if not remote_only and self._router.matching(key):
             return True
         return (self._pubs.get(key) or self._declare_publisher(key)).matching
+
+    def local_subscribers(self, key: str) -> tuple[LocalSubscription, ...]:
+        if not self._life.is_open:
+            self._life.check_open()
+        return self._router.matching(key)
 
     def subscribe(
         self,

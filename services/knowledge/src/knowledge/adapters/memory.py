@@ -19,6 +19,18 @@ def _order(r: KbRecord) -> tuple[int, int]:
     return (r.ts, r.version)
 
 
+class _History:
+    """One key's history: records ordered by (ts, version), each (version, writer) once,
+    and the retention limit of the key."""
+
+    __slots__ = ("ids", "limit", "records")
+
+    def __init__(self, limit: Limit) -> None:
+        self.records: list[KbRecord] = []
+        self.ids: set[tuple[int, str]] = set()
+        self.limit = limit
+
+
 class MemoryStore:
     """Latest records in a dict; per key a history list ordered by (ts, version), holding
     each (version, writer) once, trimmed to the newest by count and age."""
@@ -30,44 +42,52 @@ class MemoryStore:
     def __init__(self, retention: Retention) -> None:
         self._retention = retention
         self._latest: dict[str, KbRecord] = {}
-        self._history: dict[str, list[KbRecord]] = {}
-        self._ids: dict[str, set[tuple[int, str]]] = {}
+        self._history: dict[str, _History] = {}
         self._models: dict[str, dict[int, tuple[ModelMeta, bytes]]] = {}
         self._pins: dict[str, int] = {}
 
     async def apply(
         self, rec: KbRecord, *, expect: int | None = None, deadline: float | None = None
     ) -> Applied:
+        return self.apply_now(rec, expect=expect, deadline=deadline)
+
+    def apply_now(
+        self, rec: KbRecord, *, expect: int | None = None, deadline: float | None = None
+    ) -> Applied:
+        """:meth:`apply`, in the caller's frame (it never waits)."""
+        key = rec.key
         if deadline is not None:
-            check_deadline(rec.key, deadline)
-        cur = self._latest.get(rec.key)
-        cur_version = cur.version if cur is not None else 0
-        if cur is not None and cur.version == rec.version and cur.writer == rec.writer:
-            return Applied(cur.version, True, duplicate=True)
+            check_deadline(key, deadline)
+        cur = self._latest.get(key)
+        if cur is None:
+            cur_version = 0
+        else:
+            cur_version = cur.version
+            if cur_version == rec.version and cur.writer == rec.writer:
+                return Applied(cur_version, True, duplicate=True)
         if expect is not None:
             live = cur_version if cur is not None and not cur.deleted else 0
             if live != expect:
-                raise Conflict(rec.key, expect, live)
-        ids = self._ids.get(rec.key)
-        if ids is None:
-            ids = self._ids[rec.key] = set()
-            self._history[rec.key] = []
+                raise Conflict(key, expect, live)
+        h = self._history.get(key)
+        if h is None:
+            h = self._history[key] = _History(self._retention.limit(key))
         ident = (rec.version, rec.writer)
+        ids = h.ids
         if ident not in ids:
             ids.add(ident)
-            hist = self._history[rec.key]
-            last = hist[-1] if hist else None
-            if last is None or (last.ts, last.version) <= (rec.ts, rec.version):
+            hist = h.records
+            if not hist or _order(hist[-1]) <= (rec.ts, rec.version):
                 hist.append(rec)  # the usual case: the newest
             else:
                 bisect.insort(hist, rec, key=_order)
-            limit = self._retention.limit(rec.key)
+            limit = h.limit
             if limit.max_age_ns is not None or (
                 limit.max_count is not None and len(hist) > limit.max_count
             ):
                 self._trim(limit, hist, ids)
         if rec.version > cur_version:
-            self._latest[rec.key] = rec
+            self._latest[key] = rec
             return Applied(rec.version, True)
         return Applied(cur_version, False)
 
@@ -80,6 +100,10 @@ class MemoryStore:
             oldest = time.time_ns() - limit.max_age_ns
             while drop < len(hist) and hist[drop].ts < oldest:
                 drop += 1
+        if drop == 1:  # the usual case: one in, one out
+            old = hist.pop(0)
+            ids.discard((old.version, old.writer))
+            return
         for r in hist[:drop]:
             ids.discard((r.version, r.writer))
         del hist[:drop]
@@ -90,7 +114,8 @@ class MemoryStore:
     async def history(
         self, key: str, *, since: int | None, until: int | None, limit: int
     ) -> list[KbRecord]:
-        hist = self._history.get(key, [])
+        h = self._history.get(key)
+        hist = h.records if h is not None else []
         out = [
             r for r in hist if (since is None or r.ts >= since) and (until is None or r.ts < until)
         ]
