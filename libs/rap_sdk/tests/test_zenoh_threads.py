@@ -16,14 +16,26 @@ async def main(runtime):
     kw = {} if runtime == "default" else {"runtime": None}
     try:
         async with ZenohFabric(ZenohConfig(**kw)):
-            names = sorted(
-                open(f"/proc/self/task/{t}/comm").read().strip()
-                for t in os.listdir("/proc/self/task")
-            )
+            # a pool's threads start on their own time (late on a loaded machine): the
+            # listing counts once it has some and stays the same for 0.2 s (at most 10 s)
+            seen, same = None, 0
+            for _ in range(200):
+                now = zenoh_threads()
+                same = same + 1 if now and now == seen else 0
+                if same == 4:
+                    break
+                seen = now
+                await anyio.sleep(0.05)
     except FabricError as exc:
         print("error:", exc)
         return
-    print(" ".join(n for n in names if n[:3] in ("rx-", "tx-", "net", "acc", "app")))
+    print(" ".join(seen or []))
+
+def zenoh_threads():
+    names = sorted(
+        open(f"/proc/self/task/{t}/comm").read().strip() for t in os.listdir("/proc/self/task")
+    )
+    return [n for n in names if n[:3] in ("rx-", "tx-", "net", "acc", "app")]
 
 anyio.run(main, sys.argv[1])
 """
