@@ -501,3 +501,39 @@ async def test_a_declining_hook_or_bytes_or_a_non_direct_send_goes_to_the_inbox(
     assert calls == [1]
     assert (await get(sub)).obj == 3  # the inbox's own policy: the newest kept
     assert sub.stats.dropped == 2
+
+
+async def test_local_subscribers_and_the_epoch_follow_every_subscription(
+    pair: tuple[Any, Any],
+) -> None:
+    """``local_subscribers`` lists this session's own matching subscriptions (the same
+    sequence while they stay); ``epoch`` moves with a subscription here or elsewhere,
+    so what a caller concluded from them is redone exactly when it may have changed."""
+    a, b = pair
+    key = "rap/s/kb/a"
+    assert not a.has_subscribers(key)
+    assert list(a.local_subscribers(key)) == []
+    before = a.epoch
+    mine = a.subscribe("rap/s/kb/**")
+    assert a.epoch != before
+    first = a.local_subscribers(key)
+    assert list(first) == [mine]
+    assert a.local_subscribers(key) is first  # unchanged: the same sequence
+    assert list(a.local_subscribers("rap/s/data/x")) == []
+    before = a.epoch
+    theirs = b.subscribe(key)
+    with anyio.fail_after(5):  # the remote declaration reaches a on its own time
+        while not a.has_subscribers(key, remote_only=True):  # noqa: ASYNC110
+            await anyio.sleep(0.01)
+    assert a.epoch != before
+    assert list(a.local_subscribers(key)) == [mine]  # the other session's is not local
+    before = a.epoch
+    theirs.close()
+    with anyio.fail_after(5):
+        while a.has_subscribers(key, remote_only=True):  # noqa: ASYNC110
+            await anyio.sleep(0.01)
+    assert a.epoch != before
+    before = a.epoch
+    mine.close()
+    assert a.epoch != before
+    assert list(a.local_subscribers(key)) == []

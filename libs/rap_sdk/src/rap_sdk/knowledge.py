@@ -21,7 +21,7 @@ import logging
 import time
 import weakref
 import zlib
-from collections.abc import Awaitable, Callable, Sequence
+from collections.abc import Awaitable, Callable
 from types import TracebackType
 from typing import Any, Final, Protocol, TypeVar, overload
 
@@ -314,9 +314,9 @@ class KnowledgeClient:
         self._valid: set[str] = set()
         """Keys already checked (bounded)."""
         self._kb_keys: dict[str, str] = {}
-        self._receivers: dict[str, tuple[Sequence[Subscription], bool]] = {}
-        """Stream key -> its local subscriptions when last looked at, and whether the
-        co-located service and this group's replicas were all of them."""
+        self._receivers: dict[str, tuple[int, Intake, bool]] = {}
+        """Stream key -> the fabric's epoch and the intake when last looked at, and
+        whether the intake and this group's replicas were its only receivers."""
         self._own: dict[str, KbRecord] = {}
         """This client's last write of each key it has not replicated (yet)."""
         self._policy = replica_policy or InboxPolicy(capacity=8, overflow=Overflow.LATEST)
@@ -469,7 +469,16 @@ class KnowledgeClient:
         # as _stream, one frame fewer
         stream = self._kb_keys.get(key) or self._kb_key(key)
         intake = self._group.intake
-        if intake is None or not self._only_intake(stream, intake) or not intake.take(rec):
+        known = self._receivers.get(stream)
+        if (
+            intake is None
+            or not (
+                known[2]
+                if known is not None and known[0] == self.fabric.epoch and known[1] is intake
+                else self._only_intake(stream, intake)
+            )
+            or not intake.take(rec)
+        ):
             out = self.sealer.seal_out(stream, rec)
             out.group = self._group
             await self.fabric.publish(stream, out)
@@ -531,16 +540,16 @@ class KnowledgeClient:
         """Whether the co-located service and this group's replicas are the only
         receivers of ``stream`` (no other process, no other local subscription)."""
         fabric = self.fabric
-        if fabric.has_subscribers(stream, remote_only=True):
-            return False
-        subs = fabric.local_subscribers(stream)
+        epoch = fabric.epoch
         known = self._receivers.get(stream)
-        if known is not None and known[0] is subs:
-            return known[1]
+        if known is not None and known[0] == epoch and known[1] is intake:
+            return known[2]
         group = self._group
-        only = all(s is intake.stream or s.group is group for s in subs)
+        only = not fabric.has_subscribers(stream, remote_only=True) and all(
+            s is intake.stream or s.group is group for s in fabric.local_subscribers(stream)
+        )
         if len(self._receivers) < 4096:
-            self._receivers[stream] = (subs, only)
+            self._receivers[stream] = (epoch, intake, only)
         return only
 
     @staticmethod

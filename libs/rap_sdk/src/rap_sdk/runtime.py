@@ -361,6 +361,9 @@ class NodeRuntime:
         self.rejections = Rejections(node.name, log, clock=self.clock.time_ns)
         self._drop_log = Throttle()
         self._trace_key = keys.trace(system, node.name)
+        self._tracing = (-1, False)
+        """The fabric's epoch when last looked at, and whether the trace key had
+        subscribers then."""
         self._log_key = keys.log(system, node.name)
         self._stopping: anyio.Event | None = None
         self._stop_requested = False
@@ -632,8 +635,16 @@ class NodeRuntime:
         :meth:`direct` took the node's turn for this call; it is given back at the end."""
         try:
             clock = self.clock
-            # records nobody subscribes to are not built (decided once per call)
-            traced = self.trace and route.traced and self.fabric.has_subscribers(self._trace_key)
+            # records nobody subscribes to are not built (decided once per call, from
+            # what the fabric said while its subscriptions stay as they were)
+            traced = False
+            if self.trace and route.traced:
+                fabric = self.fabric
+                epoch, traced = self._tracing
+                if epoch != fabric.epoch:
+                    epoch = fabric.epoch
+                    traced = fabric.has_subscribers(self._trace_key)
+                    self._tracing = (epoch, traced)
             start = 0
             waited = None
             if traced:

@@ -240,6 +240,13 @@ class Fabric(Protocol):
         """Whether a subscriber here or elsewhere (``remote_only``: elsewhere) matches
         ``key`` now (publishers may skip building samples nobody would receive)."""
 
+    @property
+    def epoch(self) -> int:
+        """A number that changes whenever the subscribers matching some key may have
+        changed, here or elsewhere: what a caller concluded from
+        :meth:`has_subscribers` or :meth:`local_subscribers` holds while it is the
+        same."""
+
     def local_subscribers(self, key: str) -> Sequence[Subscription]:
         """This session's own subscriptions that match ``key`` now (the same sequence
         object while they do not change: callers may cache what they conclude from

@@ -53,6 +53,12 @@ class MemoryBus:
         self.epoch = 0
         """Counts changes of members and subscriptions (cached matches are redone)."""
 
+    def bump(self) -> None:
+        """A member or a subscription changed: every member's ``epoch`` moves."""
+        self.epoch += 1
+        for m in self.members:
+            m.epoch = self.epoch
+
     async def wait_changed(self) -> None:
         """Wait for the next subscription or queryable on the bus."""
         if self._changed is None:
@@ -120,6 +126,8 @@ class MemoryFabric:
         self._published: set[str] = set()
         """Keys already validated by publish()."""
         self._epoch = -1
+        self.epoch = -1
+        """The bus's epoch (see :meth:`Fabric.epoch`), kept here by the bus."""
         self._others: list[MemoryFabric] = []
         self._has: dict[str, bool] = {}
         self._has_remote: dict[str, bool] = {}
@@ -138,7 +146,7 @@ class MemoryFabric:
     async def __aenter__(self) -> MemoryFabric:
         await self._life.open()
         self.bus.members.append(self)
-        self.bus.epoch += 1
+        self.bus.bump()
         return self
 
     async def __aexit__(
@@ -154,7 +162,7 @@ class MemoryFabric:
         for w in list(self._watches):
             w.close()
         self.bus.members.remove(self)
-        self.bus.epoch += 1
+        self.bus.bump()
         await self._life.close(et, ev, tb)
 
     async def publish(
@@ -226,11 +234,11 @@ class MemoryFabric:
         def closed(s: InboxStream[Sample]) -> None:
             assert isinstance(s, LocalSubscription)
             self._router.remove(s)
-            self.bus.epoch += 1
+            self.bus.bump()
 
         sub = LocalSubscription(key_expr, policy or DEFAULT_POLICY, closed, prepare, group)
         self._router.add(sub)
-        self.bus.epoch += 1
+        self.bus.bump()
         self.bus.notify()
         return sub
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import itertools
 import json
 import logging
 import os
@@ -192,6 +193,10 @@ class ZenohFabric:
         self.config = config or ZenohConfig()
         self._life = Lifecycle("ZenohFabric")
         self._router = Router()
+        self._ticks = itertools.count(1)
+        self.epoch = 0
+        """Changes whenever a subscription here or a publisher's match elsewhere changes
+        (set from Zenoh's thread too: each change takes a value never used before)."""
         self._session: zenoh.Session | None = None
         self._handoff: LoopHandoff | None = None
         self._pubs: dict[str, _Pub] = {}
@@ -383,6 +388,7 @@ class ZenohFabric:
 
             def on_status(status: zenoh.MatchingStatus) -> None:
                 cell.matching = status.matching  # set before waking: a woken waiter sees it
+                self.epoch = next(self._ticks)
                 if status.matching and cell.waiters:
                     push(_Pub.wake, cell)
 
@@ -390,6 +396,7 @@ class ZenohFabric:
             if _matching(cell.pub):
                 cell.matching = True
         self._pubs[key] = cell
+        self.epoch = next(self._ticks)
         return cell
 
     def has_subscribers(self, key: str, *, remote_only: bool = False) -> bool:
@@ -418,6 +425,7 @@ class ZenohFabric:
         def closed(s: InboxStream[Sample]) -> None:
             assert isinstance(s, LocalSubscription)
             self._router.remove(s)
+            self.epoch = next(self._ticks)
             if s.remote_handle is not None:
                 with contextlib.suppress(zenoh.ZError):
                     s.remote_handle.undeclare()  # type: ignore[attr-defined]
@@ -439,6 +447,7 @@ class ZenohFabric:
                 key_expr, self._callback(on_sample), allowed_origin=zenoh.Locality.REMOTE
             )
         self._router.add(sub)
+        self.epoch = next(self._ticks)
         return sub
 
     async def wait_matched(
