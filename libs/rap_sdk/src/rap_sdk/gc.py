@@ -5,16 +5,19 @@ whatever handler allocated last: a pause of a fraction of a millisecond lands on
 cycle now and then (the p99). :class:`IdleCollector` moves it out of the way: after
 start-up it collects once and freezes what survived (modules, nodes, configs are never
 scanned again), turns automatic collection off, and collects the young generation when
-the nodes are idle: no handler running and no sample queued. If the loop is never idle
-long enough, it collects anyway once ``force`` objects are waiting, so memory stays
-bounded under any load. Automatic collection comes back when the last collector of
-the process stops.
+the nodes are idle: no handler running and no sample queued. It looks when a handler
+call ends (:meth:`IdleCollector.poke`, once the event loop has run what was ready), and
+every ``period`` s for what allocates outside handlers: an idle process is not woken
+up to look. If the loop is never idle, it collects anyway once ``force`` objects are
+waiting, so memory stays bounded under any load. Automatic collection comes back when
+the last collector of the process stops.
 
     async with run_nodes(nodes, fabric=fabric, system="tb4", gc_idle=True): ...
 """
 
 from __future__ import annotations
 
+import asyncio
 import gc
 import time
 from collections.abc import Callable
@@ -45,14 +48,14 @@ class IdleCollector:
         self,
         busy: Callable[[], bool],
         *,
-        period: float = 0.01,
+        period: float = 1.0,
         young: int = 700,
         force: int = 50_000,
     ) -> None:
-        """``busy()``: whether a handler is running or a sample is queued. Every
-        ``period`` s, with more than ``young`` new objects, the young generation is
-        collected if not busy (or, past ``force``, anyway); the older ones when their
-        turn comes and the nodes are idle."""
+        """``busy()``: whether a handler is running or a sample is queued. At each
+        look (after :meth:`poke`, and every ``period`` s), with more than ``young`` new
+        objects, the young generation is collected if not busy (or, past ``force``,
+        anyway); the older ones when their turn comes and the nodes are idle."""
         self.busy = busy
         self.period = period
         self.young = young
@@ -60,6 +63,20 @@ class IdleCollector:
         self.stats = GcStats()
         self._scope: anyio.CancelScope | None = None
         self._stopped = False
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._poked = False
+
+    def poke(self) -> None:
+        """A handler call ended: look once the event loop has run what is ready (the
+        rest of the cycle in this process), at most one look per turn of the loop."""
+        if not self._poked and self._loop is not None:
+            self._poked = True
+            self._loop.call_soon(self._look)
+
+    def _look(self) -> None:
+        self._poked = False
+        if not self._stopped:
+            self.step()
 
     def stop(self) -> None:
         """End :meth:`run` (automatic collection comes back if it was the last)."""
@@ -73,6 +90,7 @@ class IdleCollector:
         gc.freeze()
         _active += 1
         gc.disable()
+        self._loop = asyncio.get_running_loop()
         task_status.started()
         try:
             with anyio.CancelScope() as self._scope:

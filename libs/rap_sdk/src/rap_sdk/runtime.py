@@ -361,6 +361,8 @@ class NodeRuntime:
         self.rejections = Rejections(node.name, log, clock=self.clock.time_ns)
         self._drop_log = Throttle()
         self._trace_key = keys.trace(system, node.name)
+        self.after_call: Callable[[], None] | None = None
+        """Called when a handler call has ended (the idle collector's ``poke``)."""
         self._tracing = (-1, False)
         """The fabric's epoch when last looked at, and whether the trace key had
         subscribers then."""
@@ -699,6 +701,8 @@ class NodeRuntime:
                     turn.release()
                 else:
                     turn.held = False
+            if self.after_call is not None:
+                self.after_call()
 
     def _failed(self, route: Route, ctx: Context) -> None:
         """Count a handler's failure and log its traceback (at once, then at most one a
@@ -889,6 +893,8 @@ async def run_nodes(
         if gc_idle:
             group.collector = IdleCollector(lambda: any(rt.busy for rt in group.runtimes))
             await tg.start(group.collector.run)
+            for rt in group.runtimes:
+                rt.after_call = group.collector.poke
         try:
             yield group
         finally:
