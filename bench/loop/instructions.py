@@ -90,13 +90,14 @@ def _no_knowledge() -> None:
 def _no_store() -> None:
     """Where the time goes: the knowledge service takes the records written and stores
     nothing (everything else as in ``chain``)."""
-    from knowledge.service import KnowledgeService
-    from rap_sdk import Sample
+    from knowledge.adapters.memory import MemoryStore
+    from knowledge.ports import Applied
+    from rap_schemas import KbRecord
 
-    async def take(self: KnowledgeService, sample: Sample) -> None:
-        return None
+    def apply_now(self: MemoryStore, rec: KbRecord, **_: Any) -> Applied:
+        return Applied(rec.version, True)
 
-    KnowledgeService._take = take  # type: ignore[method-assign]
+    MemoryStore.apply_now = apply_now  # type: ignore[method-assign]
 
 
 def _settle() -> None:
