@@ -466,26 +466,7 @@ class KnowledgeClient:
         rec = self._record(key, msgspec.Raw(encoded), False)
         if durable or expect is not None:
             return await self._submit(rec, expect, value)
-        # as _stream, one frame fewer
-        stream = self._kb_keys.get(key) or self._kb_key(key)
-        intake = self._group.intake
-        known = self._receivers.get(stream)
-        if (
-            intake is None
-            or not (
-                known[2]
-                if known is not None and known[0] == self.fabric.epoch and known[1] is intake
-                else self._only_intake(stream, intake)
-            )
-            or not intake.take(rec)
-        ):
-            out = self.sealer.seal_out(stream, rec)
-            out.group = self._group
-            await self.fabric.publish(stream, out)
-        refused = self._adopt(rec, value)
-        if refused:
-            await self._publish_refused(refused)
-        return rec.version
+        return await self._stream(rec, value)
 
     async def delete(self, key: str, *, durable: bool = False, expect: int | None = None) -> int:
         rec = self._record(key, _NIL, True)
@@ -527,7 +508,16 @@ class KnowledgeClient:
         co-located service when nobody else receives the stream."""
         stream = self._kb_keys.get(rec.key) or self._kb_key(rec.key)
         intake = self._group.intake
-        if intake is None or not self._only_intake(stream, intake) or not intake.take(rec):
+        known = self._receivers.get(stream)
+        if (
+            intake is None
+            or not (
+                known[2]
+                if known is not None and known[0] == self.fabric.epoch and known[1] is intake
+                else self._only_intake(stream, intake)
+            )
+            or not intake.take(rec)
+        ):
             out = self.sealer.seal_out(stream, rec)
             out.group = self._group
             await self.fabric.publish(stream, out)
