@@ -15,7 +15,15 @@ from knowledge.app import open_service
 from knowledge.config import KnowledgeConfig
 from rap_schemas import LaserScan, StageTrace, keys, pack_ranges
 from rap_schemas.knowledge import EPOCH_MS
-from rap_sdk import Context, KnowledgeError, MemoryBus, MemoryFabric, Node, run_nodes
+from rap_sdk import (
+    Context,
+    KnowledgeClient,
+    KnowledgeError,
+    MemoryBus,
+    MemoryFabric,
+    Node,
+    run_nodes,
+)
 from rap_sdk.envelope import Sealer
 from rap_sdk.knowledge import writer_tag
 from rap_sdk.testing import DelayedKnowledgeWrites
@@ -199,3 +207,48 @@ async def test_forged_promises_cost_one_deadline_and_hold_no_other_route() -> No
         errors = [s for s in seen if isinstance(s, KnowledgeError)]
         assert len(errors) == 10
         assert seen[-1] == 2
+
+
+async def test_a_new_replica_gets_a_version_written_before_it_subscribed_at_once() -> None:
+    """The first read of a key waits for a version written before its replica
+    subscribed (the stream will not bring it again) while the service has not stored
+    it yet: the client asks the service again until it has, instead of waiting out
+    its whole timeout."""
+    bus = MemoryBus()
+    async with (
+        MemoryFabric(bus=bus) as kf,
+        open_service(KnowledgeConfig(system="t"), fabric=kf) as svc,
+        MemoryFabric(bus=bus) as wf,
+        MemoryFabric(bus=bus) as rf,
+        KnowledgeClient(fabric=wf, system="t", writer="w") as writer,
+        KnowledgeClient(fabric=rf, system="t", writer="r", timeout=5.0) as reader,
+    ):
+        stored = anyio.Event()
+        release = anyio.Event()
+        apply = svc.store.apply
+
+        async def late_apply(rec, **kw):  # type: ignore[no-untyped-def]
+            await release.wait()  # the service is slow to store the record
+            out = await apply(rec, **kw)
+            stored.set()
+            return out
+
+        svc.store.apply = late_apply  # type: ignore[method-assign]
+        wf.declare_token(keys.alive("t", "w"))  # a node alive: its versions are waited for
+        version = await writer.write("laser_scan", 7)
+        with anyio.fail_after(5):
+            while not reader.writer_alive(version):  # noqa: ASYNC110
+                await anyio.sleep(0.01)
+
+        async def store_later() -> None:
+            await anyio.sleep(0.1)
+            release.set()
+
+        async with anyio.create_task_group() as tg:
+            tg.start_soon(store_later)
+            t0 = anyio.current_time()
+            value = await reader.read("laser_scan", min_version=version)
+            waited = anyio.current_time() - t0
+        assert stored.is_set()
+        assert value == 7
+        assert waited < 1.0  # not the client's 5 s timeout

@@ -657,6 +657,7 @@ class KnowledgeClient:
     ) -> KbRecord | None:
         """The newest known record of ``key`` (None when it never existed)."""
         rep = self._replicas.get(key)
+        fresh = rep is None
         if rep is None:
             rep = await self._replicate(key)
         elif not rep.ready.is_set():
@@ -668,6 +669,8 @@ class KnowledgeClient:
         if deadline > 0:
             self.waits += 1
             with anyio.move_on_after(deadline):
+                if fresh:
+                    await self._catch_up(rep, min_version)
                 while rep.version < min_version:
                     await rep.changed()
         if rep.version < min_version:
@@ -813,6 +816,21 @@ class KnowledgeClient:
             await self._refresh(rep, 0)
         except (KnowledgeError, msgspec.MsgspecError) as exc:
             log.warning("replica of %r: catch-up from the service failed: %s", rep.key, exc)
+
+    async def _catch_up(self, rep: _Replica, min_version: int) -> None:
+        """A replica made for this read waits for a version written before it
+        subscribed: the stream will not bring that record, the service will once it
+        has stored it (it may not have when the replica first asked). Ask again, 10 ms
+        after the first time and then twice as long each time (at most 0.25 s), until
+        the version is here (from the service or the stream); the caller bounds it."""
+        delay = 0.01
+        while rep.version < min_version:
+            with anyio.move_on_after(delay):
+                while rep.version < min_version:
+                    await rep.changed()
+            if rep.version < min_version:
+                await self._refresh(rep, min_version)
+            delay = min(delay * 2, 0.25)
 
     async def _refresh(self, rep: _Replica, min_version: int) -> None:
         try:
