@@ -9,7 +9,9 @@ the nodes are idle: no handler running and no sample queued. It looks when a han
 call ends (:meth:`IdleCollector.poke`, once the event loop has run what was ready), and
 every ``period`` s for what allocates outside handlers: an idle process is not woken
 up to look. If the loop is never idle, it collects anyway once ``force`` objects are
-waiting, so memory stays bounded under any load. Automatic collection comes back when
+waiting (checked at every look), so memory stays bounded under any load: by ``force``
+objects while handlers run, and by what the process allocates outside handlers in
+one ``period``. Automatic collection comes back when
 the last collector of the process stops.
 
     async with run_nodes(nodes, fabric=fabric, system="tb4", gc_idle=True): ...

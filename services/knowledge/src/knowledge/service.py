@@ -408,11 +408,12 @@ class _Intake:
     def take(self, rec: KbRecord) -> bool:
         svc = self._service
         inbox = self.stream.inbox
-        if svc._taking or inbox._items:
-            return False
+        if svc._taking or inbox._items or inbox._closed:
+            return False  # busy, or closing: the stream's way (it says the fabric closed)
         # the writer, a KnowledgeClient, checked the key (it refuses every key the
-        # service does), the version and time (its own clock) and the value's nesting;
-        # the size is checked against this service's own limit
+        # service does), the version and time (its own clock, as the co-located
+        # replicas it hands the record to trust it) and the value's nesting; the size
+        # is checked against this service's own limit
         if len(rec.value) > svc.config.max_value_bytes:
             return False  # refused: the stream's way words and counts it
         try:

@@ -248,9 +248,8 @@ class Fabric(Protocol):
         same."""
 
     def local_subscribers(self, key: str) -> Sequence[Subscription]:
-        """This session's own subscriptions that match ``key`` now (the same sequence
-        object while they do not change: callers may cache what they conclude from
-        it by its identity)."""
+        """This session's own subscriptions that match ``key`` now. A caller that
+        caches what it concludes from them keys the cache on :attr:`epoch`."""
 
     def serve(self, key_expr: str, handler: QueryHandler) -> Queryable: ...
 
