@@ -528,12 +528,10 @@ class KnowledgeClient:
 
     def _only_intake(self, stream: str, intake: Intake) -> bool:
         """Whether the co-located service and this group's replicas are the only
-        receivers of ``stream`` (no other process, no other local subscription)."""
+        receivers of ``stream`` (no other process, no other local subscription),
+        remembered under the fabric's epoch (``_stream`` reads it there first)."""
         fabric = self.fabric
         epoch = fabric.epoch
-        known = self._receivers.get(stream)
-        if known is not None and known[0] == epoch and known[1] is intake:
-            return known[2]
         group = self._group
         only = not fabric.has_subscribers(stream, remote_only=True) and all(
             s is intake.stream or s.group is group for s in fabric.local_subscribers(stream)
