@@ -11,8 +11,8 @@ every ``period`` s for what allocates outside handlers: an idle process is not w
 up to look. If the loop is never idle, it collects anyway once ``force`` objects are
 waiting (checked at every look), so memory stays bounded under any load: by ``force``
 objects while handlers run, and by what the process allocates outside handlers in
-one ``period``. Automatic collection comes back when
-the last collector of the process stops.
+one ``period``. Automatic collection comes back when the last collector of the process
+stops.
 
     async with run_nodes(nodes, fabric=fabric, system="tb4", gc_idle=True): ...
 """

@@ -129,9 +129,6 @@ class HybridClock:
         self._now_ms = now_ms
         self._last = 0
 
-    def _ms(self) -> int:
-        return self._now_ms() if self._now_ms is not None else time.time_ns() // 1_000_000
-
     def next(self) -> int:
         now = self._now_ms
         wall = ((now() if now is not None else time.time_ns() // 1_000_000) - EPOCH_MS) << 20
