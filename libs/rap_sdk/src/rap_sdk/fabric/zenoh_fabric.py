@@ -437,10 +437,11 @@ class ZenohFabric:
         def on_sample(s: zenoh.Sample) -> None:
             payload = s.payload.to_bytes()
             sample = Sample(str(s.key_expr), payload, True, arrived=monotonic())
-            push(deliver, sample)
             if prepare is not None:
-                # after the hand-off: this runs while the loop thread is still waking up
+                # before the hand-off: decoding after it would hold the interpreter lock
+                # while the loop thread wakes, which then sleeps again waiting for it
                 sample.prepared = prepared(prepare, payload)
+            push(deliver, sample)
 
         with _zenoh_errors(f"subscribing to {key_expr!r}"):
             sub.remote_handle = self.session.declare_subscriber(
