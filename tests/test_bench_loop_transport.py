@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from bench.loop.transport import STAGES, zenoh_echo, zenoh_relay
+from bench.loop.transport import STAGES, zenoh_echo, zenoh_echo_loop, zenoh_relay
 
 
 def test_the_relay_floor_crosses_every_stage_and_comes_back() -> None:
@@ -15,3 +15,9 @@ def test_the_relay_floor_crosses_every_stage_and_comes_back() -> None:
 def test_the_echo_floor_comes_back() -> None:
     r = zenoh_echo(50.0, 10, warmup=2)
     assert (r["received"], r["lost"]) == (10, 0)
+
+
+def test_the_loop_woken_echo_floor_comes_back() -> None:
+    r = zenoh_echo_loop(50.0, 10, warmup=2)
+    assert (r["received"], r["lost"]) == (10, 0)
+    assert all(ns > 0 for ns in r["latencies_ns"])

@@ -34,17 +34,27 @@ import anyio
 
 from bench.report import ROOT, hardware, hardware_line, pct, table, write_json, write_section
 
-from .rap import run_floor, run_floor_paced, run_inproc, run_rap
-from .transport import zenoh_echo, zenoh_relay
+from .rap import run_contract_paced, run_floor, run_floor_paced, run_inproc, run_rap
+from .transport import zenoh_echo, zenoh_echo_loop, zenoh_relay
 
 RATES = [5.0, 20.0, 100.0]
 RAP_LADDER = [200.0, 400.0, 700.0, 1000.0]
 PEER_LADDER = (200.0, 300.0, 500.0)
 
 
-FLOORS = ("floor-paced", "zenoh-echo", "zenoh-relay", "rap-echo", "rap-inproc")
-"""Rows that take the loop apart: two cross-process hops on raw Zenoh, the same through
-RAP, and the whole chain in one process without a transport."""
+FLOORS = (
+    "floor-paced",
+    "contract-paced",
+    "zenoh-echo",
+    "zenoh-echo-loop",
+    "zenoh-relay",
+    "rap-echo",
+    "rap-inproc",
+)
+"""Rows that take the loop apart: the handlers alone, the handlers with what RAP's
+contract asks of a cycle, two cross-process hops on raw Zenoh (answered on Zenoh's
+thread, and woken in an event loop at both ends), six such hops, the same round trip
+through RAP, and the whole chain in one process without a transport."""
 
 
 def _say(msg: str) -> None:
@@ -123,10 +133,17 @@ def main() -> int:
         r = anyio.run(run_floor_paced, rate, _cycles(rate, seconds), 20, backend_options=uv)
         rows.append(_row("floor-paced", r))
         _say(f"  floor-paced {rate:g} Hz: {rows[-1]}")
+        r = anyio.run(run_contract_paced, rate, _cycles(rate, seconds), 20, backend_options=uv)
+        rows.append(_row("contract-paced", r))
+        _say(f"  contract-paced {rate:g} Hz: {rows[-1]}")
     for rate in RATES:  # the transport floor: two hops, raw Zenoh, no event loop
         r = zenoh_echo(rate, _cycles(rate, seconds))
         rows.append(_row("zenoh-echo", r))
         _say(f"  zenoh-echo {rate:g} Hz: {rows[-1]}")
+    for rate in RATES:  # the same, each end woken in its event loop as RAP's processes
+        r = zenoh_echo_loop(rate, _cycles(rate, seconds))
+        rows.append(_row("zenoh-echo-loop", r))
+        _say(f"  zenoh-echo-loop {rate:g} Hz: {rows[-1]}")
     for rate in RATES:  # the five-process layout's transport floor: six hops, loops woken
         r = zenoh_relay(rate, _cycles(rate, seconds))
         rows.append(_row("zenoh-relay", r))
@@ -183,6 +200,16 @@ def _ratio(rows: list[dict[str, Any]], a: str, b: str, rate: float) -> float | N
     return round(ra["p50_ms"] / rb["p50_ms"], 3)
 
 
+def _one_proc_floor(rows: list[dict[str, Any]], rate: float) -> float | None:
+    """The least a one-process loop can take at ``rate`` (p50, ms): a round trip between
+    two processes woken in their event loops, plus the chain keeping the contract with
+    no dispatch (it leaves out the knowledge writes that go to the service's process)."""
+    loop, contract = _find(rows, "zenoh-echo-loop", rate), _find(rows, "contract-paced", rate)
+    if loop is None or contract is None or not loop["p50_ms"] or not contract["p50_ms"]:
+        return None
+    return round(loop["p50_ms"] + contract["p50_ms"], 3)
+
+
 def _budgets(rows: list[dict[str, Any]], instr: dict[str, Any] | None) -> list[dict[str, Any]]:
     checks = []
     if instr:
@@ -210,6 +237,14 @@ def _budgets(rows: list[dict[str, Any]], instr: dict[str, Any] | None) -> list[d
                 if a == "rap-5proc":
                     relay = _ratio(rows, "zenoh-relay", b, rate)
                     floor = f"zenoh-relay: {relay}" if relay is not None else ""
+                elif a == "rap-inproc":
+                    contract = _ratio(rows, "contract-paced", b, rate)
+                    floor = f"contract-paced: {contract}" if contract is not None else ""
+                elif (a, b) == ("rap-1proc", "zenoh-echo"):
+                    least = _one_proc_floor(rows, rate)
+                    echo = _find(rows, b, rate)
+                    if least is not None and echo is not None and echo["p50_ms"]:
+                        floor = f"zenoh-echo-loop + contract-paced: {least / echo['p50_ms']:.3f}"
                 checks.append(_check(f"{what} at {rate:g} Hz", ratio, budget, floor))
         for variant in ("rap-1proc", "rap-5proc"):
             r = _find(rows, variant, rate)
@@ -230,10 +265,22 @@ ROWS_EXPLAINED = [
     "check, no runtime), one cycle per period like the loop rows, the event loop idle "
     "in between: what the loop's own logic costs with caches as cold as a paced cycle "
     "finds them.",
+    "- `contract-paced`: the same five stages as coroutines awaited one after another, "
+    "doing what RAP's message and knowledge contract asks of a cycle (six envelopes "
+    "with uid, time, sequence, cycle, cause and versions; three versioned knowledge "
+    "writes kept in history; two reads checked against the versions their trigger "
+    "names; the gate) and nothing else: no routing, inbox, trace or task switch "
+    "(bench/loop/contract.py). Paced like `floor-paced`, it is the least a runtime "
+    "keeping the contract can take; `rap-inproc` less this row is what RAP's dispatch "
+    "costs.",
     "- `zenoh-echo`: two cross-process hops on raw Zenoh (robot -> echo -> robot), "
     "answered inside Zenoh's callback thread: no event loop at either end, no RAP code. "
     "Both raw-Zenoh rows run Zenoh's tasks on one worker thread, as RAP's processes do "
     "(`ZenohConfig.runtime`).",
+    "- `zenoh-echo-loop`: the same two hops with both ends woken in their asyncio loops "
+    "(uvloop), as every RAP process is: the child is a one-stage relay (below) and the "
+    "robot takes the echo from Zenoh's thread into its loop before it timestamps it. "
+    "No RAP code: the least a round trip between two RAP processes can cost.",
     "- `zenoh-relay`: the five-process layout's transport floor on raw Zenoh: the "
     "robot -> five relay processes -> robot (six cross-process hops, all sessions "
     "meshed), each relay woken in its asyncio loop (uvloop) and putting the sample on "
@@ -295,13 +342,15 @@ def _instructions_doc(instr: dict[str, Any] | None) -> list[str]:
         return []
     rows = [
         [kind, f"{instr[kind]:,}", instr.get(f"{kind}_vs_direct", "")]
-        for kind in ("direct", "chain", "chain-traced")
+        for kind in ("direct", "contract", "chain", "chain-traced")
         if kind in instr
     ]
     return [
         f"Instructions per cycle (callgrind, {instr['cycles']} cycles after "
         f"{instr['warmup']} of warm-up, start-up cancelled out): `direct` is the five "
-        "handlers called directly, `chain` the robot, the five stages and the knowledge "
+        "handlers called directly, `contract` the same with what RAP's contract asks of "
+        "a cycle and no dispatch (the `contract-paced` row), `chain` the robot, the five "
+        "stages and the knowledge "
         "service in one process on the in-memory fabric, `chain-traced` the same with a "
         "subscriber to every trace record. Counts do not drift with machine load.",
         "",
@@ -328,12 +377,12 @@ def _where(rows: list[dict[str, Any]]) -> list[str]:
     for rate in RATES:
         p50 = {s: (r or {}).get("p50_ms") for s in systems for r in [_find(rows, s, rate)]}
         peer, echo, five = p50["rpio-redis"], p50["zenoh-echo"], p50["rap-5proc"]
-        rap_echo, logic, relay = p50["rap-echo"], p50["floor-paced"], p50["zenoh-relay"]
+        relay = p50["zenoh-relay"]
         body.append(
             [
                 rate,
                 *p50.values(),
-                round(rap_echo + logic, 3) if rap_echo and logic else None,
+                _one_proc_floor(rows, rate),
                 round(five / echo, 2) if five and echo else None,
                 round(five - relay, 3) if five and relay else None,
                 round(2.4 * echo, 3) if echo else None,
@@ -342,17 +391,18 @@ def _where(rows: list[dict[str, Any]]) -> list[str]:
         )
     return [
         "Where the time goes (p50, ms, this run), with what each budget allows at the "
-        "same rate. Every RAP loop pays at least `rap-echo`: the robot is in another "
-        "process. One runner process adds the chain (`rap-inproc` less its share of "
-        "`floor-paced`) and the knowledge writes going out to the knowledge service's "
-        "process; five processes add four more hops, each paying an event-loop wake-up "
+        "same rate. Every RAP loop pays at least `zenoh-echo-loop`: the robot is in "
+        "another process, and both are asyncio processes; `rap-echo` is that round trip "
+        "through RAP. One runner process adds the chain (`rap-inproc`; `contract-paced` "
+        "is the least of it) and the knowledge writes going out to the knowledge "
+        "service's process; five processes add four more hops, each paying an event-loop wake-up "
         "at both ends (`5proc / echo` is that loop's p50 in raw Zenoh round trips; "
         "`zenoh-relay` is those six hops with their wake-ups and nothing else, and "
         "`5proc - relay` what RAP's stages, envelopes and knowledge add to them). "
-        "`1proc floor` is `rap-echo` plus `floor-paced`: the least a one-process loop can "
-        "take with RAP's transport path as it is and no runtime cost at all for the five "
-        "stages; where `2.4 x echo` is under it, that budget needs the two event-loop "
-        "wake-ups of `rap-echo` to shrink, not only the chain.",
+        "`1proc floor` is `zenoh-echo-loop` plus `contract-paced`: the least a "
+        "one-process loop can take, with no RAP dispatch at all and the knowledge "
+        "service's writes left out; where `2.4 x echo` is under it, that budget is below "
+        "a floor measured in this run.",
         "",
         table(cols, body),
     ]

@@ -14,6 +14,9 @@ by ``N`` is the cost of one cycle, with start-up, imports and warm-up cancelled 
   in-memory fabric, one scan at a time (send, wait for the plan): what RAP adds;
 - ``chain-traced``: the same with a subscriber to every trace record (as a trust checker
   or a cycle tracker in the process would be);
+- ``contract``: the contract floor (bench/loop/contract.py): the five stages as
+  coroutines awaited one after another with the envelopes, knowledge versions, history
+  and gate that RAP's contract asks for, and no dispatch at all;
 - ``chain-no-knowledge``, ``chain-no-store`` (asked for with ``--kinds``: where the time
   goes): the chain with the handlers' knowledge on a dict, and with a knowledge service
   that stores nothing.
@@ -45,10 +48,11 @@ from rap_sdk import Context, MemoryFabric, Node, NodeRuntime, run_nodes
 
 from bench.loop import chain
 from bench.loop.chain import handlers
+from bench.loop.contract import contract_cycle
 from bench.loop.rap import SYSTEM, make_scan
 
 WARMUP = 50
-KINDS = ["direct", "chain", "chain-traced", "chain-no-knowledge", "chain-no-store"]
+KINDS = ["direct", "contract", "chain", "chain-traced", "chain-no-knowledge", "chain-no-store"]
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -61,6 +65,9 @@ def _child(kind: str, cycles: int) -> None:
             if i == WARMUP:
                 _settle()
             assert cycle(scan) is not None
+        return
+    if kind == "contract":
+        anyio.run(_contract, cycles, backend_options={"use_uvloop": True})
         return
     if kind == "chain-no-knowledge":
         _no_knowledge()
@@ -110,6 +117,15 @@ def _settle() -> None:
     gc.collect()
     gc.freeze()
     gc.disable()
+
+
+async def _contract(cycles: int) -> None:
+    scan = make_scan()
+    cycle = contract_cycle()
+    for i in range(WARMUP + cycles):
+        if i == WARMUP:
+            _settle()
+        assert await cycle(scan) is not None
 
 
 class _Robot:
@@ -202,7 +218,7 @@ def _instructions(kind: str, cycles: int) -> int:
 
 
 def measure(
-    cycles: int = 300, kinds: tuple[str, ...] = ("direct", "chain", "chain-traced")
+    cycles: int = 300, kinds: tuple[str, ...] = ("direct", "contract", "chain", "chain-traced")
 ) -> dict[str, Any]:
     """Instructions per cycle of each kind (and its ratio to ``direct``)."""
     if shutil.which("valgrind") is None:
@@ -227,7 +243,7 @@ def main() -> None:
         "--kinds",
         nargs="+",
         choices=KINDS,
-        default=["direct", "chain", "chain-traced"],
+        default=["direct", "contract", "chain", "chain-traced"],
         help="what to count (chain-no-knowledge, chain-no-store: where the time goes)",
     )
     a = ap.parse_args()

@@ -26,6 +26,7 @@ from rap_sdk.fabric import free_port
 
 from . import chain
 from .chain import ROBOT, handlers
+from .contract import contract_cycle
 
 HERE = Path(__file__).resolve().parent
 PLANS = {
@@ -171,6 +172,28 @@ async def run_floor_paced(rate: float, cycles: int, warmup: int) -> dict[str, An
             await anyio.sleep(delay)
         t = time.perf_counter_ns()
         plan = cycle(scan)
+        dt = time.perf_counter_ns() - t
+        assert plan is not None
+        if i >= warmup:
+            lat.append(dt)
+    return {"rate_hz": rate, "lost": 0, "send_rate_hz": rate, "latencies_ns": lat}
+
+
+async def run_contract_paced(rate: float, cycles: int, warmup: int) -> dict[str, Any]:
+    """The contract floor (bench/loop/contract.py), paced like ``floor-paced``: the five
+    stages awaited one after another with the envelopes, knowledge versions and gate
+    RAP's contract asks for, and no dispatch."""
+    scan = make_scan()
+    cycle = contract_cycle()
+    period = 1.0 / rate
+    lat = []
+    start = anyio.current_time()
+    for i in range(warmup + cycles):
+        delay = start + i * period - anyio.current_time()
+        if delay > 0:
+            await anyio.sleep(delay)
+        t = time.perf_counter_ns()
+        plan = await cycle(scan)
         dt = time.perf_counter_ns() - t
         assert plan is not None
         if i >= warmup:

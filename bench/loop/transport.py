@@ -4,6 +4,10 @@
   payload, a child process puts it straight back from inside Zenoh's subscriber callback
   (on Zenoh's own thread), and this process timestamps the echo in its callback. It is
   the least a scan -> plan round trip over Zenoh can cost here.
+- ``zenoh-echo-loop``: the same two hops with each end woken in its asyncio loop
+  (uvloop): the child is a one-stage relay (below), and this process takes the echo from
+  Zenoh's thread into its loop before it timestamps it. Every RAP process is an asyncio
+  process, so this is the least a round trip between two of them can cost.
 - ``rap-echo`` (see ``chain.echo`` and ``plans/echo.yaml``) is the same round trip through
   RAP: the robot's scan reaches one RAP node in a runner process, which publishes the plan
   back: envelopes, typed decode, inboxes and two asyncio event loops woken by Zenoh.
@@ -80,7 +84,7 @@ RELAY_CMD = (sys.executable, "-m", "bench.loop.transport", "relay")
 STAGES = 5
 
 
-def _relay(index: int, listen: str, connect: list[str]) -> None:
+def _relay(index: int, listen: str, connect: list[str], stages: int = STAGES) -> None:
     """Stage ``index`` of the relay floor: a sample on ``relay/<index>`` wakes this
     process's asyncio loop (uvloop, as RAP's processes run), which puts it on the next
     key from the loop: what one RAP stage in its own process pays at least, with no
@@ -92,7 +96,7 @@ def _relay(index: int, listen: str, connect: list[str]) -> None:
     async def run() -> None:
         loop = asyncio.get_running_loop()
         session = zenoh.open(_config(listen=listen, connect=connect))
-        nxt = f"{RELAY}/{index + 1}" if index + 1 < STAGES else f"{RELAY}/back"
+        nxt = f"{RELAY}/{index + 1}" if index + 1 < stages else f"{RELAY}/back"
         pub = session.declare_publisher(nxt)
 
         def on_sample(sample: zenoh.Sample) -> None:
@@ -136,6 +140,86 @@ def zenoh_relay(rate: float, cycles: int, warmup: int = 20) -> dict[str, Any]:
         return _round_trips(session, f"{RELAY}/0", f"{RELAY}/back", rate, cycles, warmup)
     finally:
         _stop(children)
+        session.close()
+
+
+def zenoh_echo_loop(rate: float, cycles: int, warmup: int = 20) -> dict[str, Any]:
+    """``zenoh-echo`` with both ends woken in their asyncio loops (uvloop), as every RAP
+    process is: the child is a one-stage relay, and this process takes the echo from
+    Zenoh's thread into its loop before it timestamps it. Two hops and two loop
+    wake-ups, no RAP code: the least a round trip between two RAP processes can cost."""
+    import asyncio
+
+    import uvloop
+
+    ZenohConfig().use_runtime()
+    ports = [free_port(), free_port()]
+    ends = [f"tcp/127.0.0.1:{p}" for p in ports]
+    session = zenoh.open(_config(listen=ends[0]))
+    child = subprocess.Popen(
+        [*RELAY_CMD, "0", ends[1], ends[0], "--stages", "1"],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+
+    async def run() -> dict[str, Any]:
+        loop = asyncio.get_running_loop()
+        waiting: list[asyncio.Future[int]] = []
+
+        def arrived() -> None:
+            t = time.perf_counter_ns()
+            if waiting and not waiting[0].done():
+                waiting[0].set_result(t)
+
+        session.declare_subscriber(
+            f"{RELAY}/back",
+            zenoh.handlers.Callback(lambda _: loop.call_soon_threadsafe(arrived), indirect=False),
+        )
+        pub = session.declare_publisher(f"{RELAY}/0")
+
+        async def trip(timeout: float) -> int | None:
+            fut = loop.create_future()
+            waiting[:] = [fut]
+            t = time.perf_counter_ns()
+            pub.put(PAYLOAD)
+            try:
+                return await asyncio.wait_for(fut, timeout) - t
+            except TimeoutError:
+                return None
+
+        deadline = time.monotonic() + 10.0
+        while await trip(0.2) is None:  # connected: a probe comes back
+            if time.monotonic() > deadline:
+                raise RuntimeError("nothing came back from the loop echo within 10 s")
+        lat: list[int] = []
+        lost = 0
+        period = 1.0 / rate
+        start = loop.time()
+        for i in range(warmup + cycles):
+            delay = start + i * period - loop.time()
+            if delay > 0:
+                await asyncio.sleep(delay)
+            dt = await trip(1.0)
+            if dt is None:
+                lost += i >= warmup
+            elif i >= warmup:
+                lat.append(dt)
+        return {
+            "rate_hz": rate,
+            "sent": cycles,
+            "received": len(lat),
+            "lost": lost,
+            "latencies_ns": lat,
+        }
+
+    try:
+        assert child.stdout is not None
+        if child.stdout.readline().strip() != "ready":
+            raise RuntimeError("the zenoh loop echo process did not start")
+        return uvloop.run(run())
+    finally:
+        _stop([child])
         session.close()
 
 
@@ -203,9 +287,13 @@ if __name__ == "__main__":
     if sys.argv[1:2] == ["echo"] and len(sys.argv) == 4 and sys.argv[2] == "--connect":
         _echo(sys.argv[3])
     elif sys.argv[1:2] == ["relay"] and len(sys.argv) >= 5:
-        _relay(int(sys.argv[2]), sys.argv[3], sys.argv[4:])
+        args = sys.argv[4:]
+        stages = STAGES
+        if args[-2:-1] == ["--stages"]:
+            stages, args = int(args[-1]), args[:-2]
+        _relay(int(sys.argv[2]), sys.argv[3], args, stages)
     else:
         sys.exit(
             "usage: python -m bench.loop.transport echo --connect ENDPOINT\n"
-            "       python -m bench.loop.transport relay INDEX LISTEN CONNECT..."
+            "       python -m bench.loop.transport relay INDEX LISTEN CONNECT... [--stages N]"
         )
