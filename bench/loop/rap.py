@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 import random
 import time
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
@@ -157,12 +158,11 @@ async def run_inproc(rates: list[float], cycles: int, warmup: int) -> list[dict[
     return out
 
 
-async def run_floor_paced(rate: float, cycles: int, warmup: int) -> dict[str, Any]:
-    """The five handlers called directly, paced like the loop rows: one cycle per period
-    on absolute deadlines, the event loop idle in between (caches as cold as the loop's
-    own cycles find them)."""
-    scan = make_scan()
-    cycle = handlers(time.time_ns)
+async def _paced(
+    rate: float, cycles: int, warmup: int, once: Callable[[], Awaitable[int]]
+) -> dict[str, Any]:
+    """``once()`` (one cycle, returning its own duration in ns) on absolute deadlines at
+    ``rate``, the event loop idle in between, as the loop rows are paced."""
     period = 1.0 / rate
     lat = []
     start = anyio.current_time()
@@ -170,13 +170,27 @@ async def run_floor_paced(rate: float, cycles: int, warmup: int) -> dict[str, An
         delay = start + i * period - anyio.current_time()
         if delay > 0:
             await anyio.sleep(delay)
+        dt = await once()
+        if i >= warmup:
+            lat.append(dt)
+    return {"rate_hz": rate, "lost": 0, "send_rate_hz": rate, "latencies_ns": lat}
+
+
+async def run_floor_paced(rate: float, cycles: int, warmup: int) -> dict[str, Any]:
+    """The five handlers called directly, paced like the loop rows: one cycle per period
+    on absolute deadlines, the event loop idle in between (caches as cold as the loop's
+    own cycles find them)."""
+    scan = make_scan()
+    cycle = handlers(time.time_ns)
+
+    async def once() -> int:
         t = time.perf_counter_ns()
         plan = cycle(scan)
         dt = time.perf_counter_ns() - t
         assert plan is not None
-        if i >= warmup:
-            lat.append(dt)
-    return {"rate_hz": rate, "lost": 0, "send_rate_hz": rate, "latencies_ns": lat}
+        return dt
+
+    return await _paced(rate, cycles, warmup, once)
 
 
 async def run_contract_paced(rate: float, cycles: int, warmup: int) -> dict[str, Any]:
@@ -185,20 +199,15 @@ async def run_contract_paced(rate: float, cycles: int, warmup: int) -> dict[str,
     RAP's contract asks for, and no dispatch."""
     scan = make_scan()
     cycle = contract_cycle()
-    period = 1.0 / rate
-    lat = []
-    start = anyio.current_time()
-    for i in range(warmup + cycles):
-        delay = start + i * period - anyio.current_time()
-        if delay > 0:
-            await anyio.sleep(delay)
+
+    async def once() -> int:
         t = time.perf_counter_ns()
         plan = await cycle(scan)
         dt = time.perf_counter_ns() - t
         assert plan is not None
-        if i >= warmup:
-            lat.append(dt)
-    return {"rate_hz": rate, "lost": 0, "send_rate_hz": rate, "latencies_ns": lat}
+        return dt
+
+    return await _paced(rate, cycles, warmup, once)
 
 
 def run_floor(cycles: int) -> list[int]:
