@@ -4,10 +4,14 @@
 
 In one run:
 - instructions per cycle of the in-process chain, untraced and traced, against the five
-  handlers called directly, counted under callgrind (bench/loop/instructions.py);
+  handlers called directly and the contract floor, counted under callgrind
+  (bench/loop/instructions.py);
 - the floor: the five handlers called directly, back to back (hot caches) and paced
-  like the loop rows (``floor-paced``: same rates, same idle gaps);
-- raw Zenoh echo (two hops, no event loop), the same round trip through RAP, the chain
+  like the loop rows (``floor-paced``: same rates, same idle gaps), and the contract
+  floor paced the same way (``contract-paced``: the handlers plus what RAP's contract
+  asks of a cycle, no dispatch; bench/loop/contract.py);
+- raw Zenoh echo (two hops, no event loop), the same with both ends woken in their
+  asyncio loops (``zenoh-echo-loop``), the same round trip through RAP, the chain
   in one process on the in-memory fabric, RAP with all five stages in one runner
   process, RAP with each stage in its own process (both over loopback Zenoh, the
   knowledge service in its own process), and the peer over Redis and over MQTT
