@@ -20,18 +20,23 @@ another process pays one more hop.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import json
 import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from typing import Any
 
+import uvloop
 import zenoh
 from rap_sdk import ZenohConfig
 from rap_sdk.fabric import free_port
 
 PING, PONG = "race/floor/ping", "race/floor/pong"
+ECHO_CMD = (sys.executable, "-m", "bench.loop.transport", "echo")
 PAYLOAD = b"\x00" * 4500
 """About the size of the race's 360-beam scan as msgpack."""
 
@@ -63,19 +68,12 @@ def zenoh_echo(rate: float, cycles: int, warmup: int = 20) -> dict[str, Any]:
     ZenohConfig().use_runtime()  # Zenoh's threads as in RAP's processes, children too
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     session = zenoh.open(_config(listen=endpoint))
-    child = subprocess.Popen(
-        [sys.executable, "-m", "bench.loop.transport", "echo", "--connect", endpoint],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        text=True,
-    )
+    children: list[subprocess.Popen[str]] = []
     try:
-        assert child.stdout is not None
-        if child.stdout.readline().strip() != "ready":
-            raise RuntimeError("the zenoh echo process did not start")
+        _start(children, [[*ECHO_CMD, "--connect", endpoint]])
         return _round_trips(session, PING, PONG, rate, cycles, warmup)
     finally:
-        _stop([child])
+        _stop(children)
         session.close()
 
 
@@ -89,9 +87,6 @@ def _relay(index: int, listen: str, connect: list[str], stages: int = STAGES) ->
     process's asyncio loop (uvloop, as RAP's processes run), which puts it on the next
     key from the loop: what one RAP stage in its own process pays at least, with no
     envelope, no decoding and no knowledge."""
-    import asyncio
-
-    import uvloop
 
     async def run() -> None:
         loop = asyncio.get_running_loop()
@@ -114,30 +109,29 @@ def _relay(index: int, listen: str, connect: list[str], stages: int = STAGES) ->
     uvloop.run(run())
 
 
-def zenoh_relay(rate: float, cycles: int, warmup: int = 20) -> dict[str, Any]:
+def zenoh_relay(
+    rate: float, cycles: int, warmup: int = 20, stages: int = STAGES, woken: bool = False
+) -> dict[str, Any]:
     """The transport floor of the five-process loop: six cross-process hops (robot ->
     five relay processes, each woken in its event loop -> robot) on raw Zenoh, all
-    sessions meshed with each other; lost after 1 s, as ``zenoh_echo``."""
+    sessions meshed with each other; lost after 1 s, as ``zenoh_echo``. ``stages``: how
+    many relays; ``woken``: this process, too, takes each sample that comes back from
+    Zenoh's thread into an asyncio loop (uvloop) before it timestamps it."""
     ZenohConfig().use_runtime()  # Zenoh's threads as in RAP's processes, children too
-    ports = [free_port() for _ in range(STAGES + 1)]
+    ports = [free_port() for _ in range(stages + 1)]
     ends = [f"tcp/127.0.0.1:{p}" for p in ports]
     session = zenoh.open(_config(listen=ends[0]))
-    children = []
+    children: list[subprocess.Popen[str]] = []
     try:
-        children.extend(
-            subprocess.Popen(
-                [*RELAY_CMD, str(i), ends[i + 1], *ends[: i + 1]],
-                stdin=subprocess.PIPE,
-                stdout=subprocess.PIPE,
-                text=True,
-            )
-            for i in range(STAGES)
+        _start(
+            children,
+            [
+                [*RELAY_CMD, str(i), ends[i + 1], *ends[: i + 1], "--stages", str(stages)]
+                for i in range(stages)
+            ],
         )
-        for child in children:
-            assert child.stdout is not None
-            if child.stdout.readline().strip() != "ready":
-                raise RuntimeError("a zenoh relay process did not start")
-        return _round_trips(session, f"{RELAY}/0", f"{RELAY}/back", rate, cycles, warmup)
+        with _loop_thread() if woken else contextlib.nullcontext() as loop:
+            return _round_trips(session, f"{RELAY}/0", f"{RELAY}/back", rate, cycles, warmup, loop)
     finally:
         _stop(children)
         session.close()
@@ -146,81 +140,36 @@ def zenoh_relay(rate: float, cycles: int, warmup: int = 20) -> dict[str, Any]:
 def zenoh_echo_loop(rate: float, cycles: int, warmup: int = 20) -> dict[str, Any]:
     """``zenoh-echo`` with both ends woken in their asyncio loops (uvloop), as every RAP
     process is: the child is a one-stage relay, and this process takes the echo from
-    Zenoh's thread into its loop before it timestamps it. Two hops and two loop
-    wake-ups, no RAP code: the least a round trip between two RAP processes can cost."""
-    import asyncio
+    Zenoh's thread into a loop before it timestamps it. Two hops and two loop wake-ups,
+    no RAP code: the least a round trip between two RAP processes can cost."""
+    return zenoh_relay(rate, cycles, warmup, stages=1, woken=True)
 
-    import uvloop
 
-    ZenohConfig().use_runtime()
-    ports = [free_port(), free_port()]
-    ends = [f"tcp/127.0.0.1:{p}" for p in ports]
-    session = zenoh.open(_config(listen=ends[0]))
-    child = subprocess.Popen(
-        [*RELAY_CMD, "0", ends[1], ends[0], "--stages", "1"],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-
-    async def run() -> dict[str, Any]:
-        loop = asyncio.get_running_loop()
-        waiting: list[asyncio.Future[int]] = []
-
-        def arrived() -> None:
-            t = time.perf_counter_ns()
-            if waiting and not waiting[0].done():
-                waiting[0].set_result(t)
-
-        session.declare_subscriber(
-            f"{RELAY}/back",
-            zenoh.handlers.Callback(lambda _: loop.call_soon_threadsafe(arrived), indirect=False),
-        )
-        pub = session.declare_publisher(f"{RELAY}/0")
-
-        async def trip(timeout: float) -> int | None:
-            fut = loop.create_future()
-            waiting[:] = [fut]
-            t = time.perf_counter_ns()
-            pub.put(PAYLOAD)
-            try:
-                return await asyncio.wait_for(fut, timeout) - t
-            except TimeoutError:
-                return None
-
-        deadline = time.monotonic() + 10.0
-        while await trip(0.2) is None:  # connected: a probe comes back
-            if time.monotonic() > deadline:
-                raise RuntimeError("nothing came back from the loop echo within 10 s")
-        lat: list[int] = []
-        lost = 0
-        period = 1.0 / rate
-        start = loop.time()
-        for i in range(warmup + cycles):
-            delay = start + i * period - loop.time()
-            if delay > 0:
-                await asyncio.sleep(delay)
-            dt = await trip(1.0)
-            if dt is None:
-                lost += i >= warmup
-            elif i >= warmup:
-                lat.append(dt)
-        return {
-            "rate_hz": rate,
-            "sent": cycles,
-            "received": len(lat),
-            "lost": lost,
-            "latencies_ns": lat,
-        }
-
+@contextlib.contextmanager
+def _loop_thread() -> Iterator[asyncio.AbstractEventLoop]:
+    """An idle uvloop running on a thread of its own, for the duration of the block."""
+    loop = uvloop.new_event_loop()
+    thread = threading.Thread(target=loop.run_forever, name="floor-loop", daemon=True)
+    thread.start()
     try:
+        yield loop
+    finally:
+        loop.call_soon_threadsafe(loop.stop)
+        thread.join(timeout=5)
+        loop.close()
+
+
+def _start(children: list[subprocess.Popen[str]], cmds: list[list[str]]) -> None:
+    """Start ``cmds`` (appended to ``children`` as they start, for ``_stop``) and wait
+    until each says it is ready."""
+    children.extend(  # appended one by one: a failed start leaves the others to stop
+        subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        for cmd in cmds
+    )
+    for child in children:
         assert child.stdout is not None
         if child.stdout.readline().strip() != "ready":
-            raise RuntimeError("the zenoh loop echo process did not start")
-        return uvloop.run(run())
-    finally:
-        _stop([child])
-        session.close()
+            raise RuntimeError(f"a floor process did not start: {child.args}")
 
 
 def _stop(children: list[subprocess.Popen[str]]) -> None:
@@ -239,14 +188,28 @@ def _stop(children: list[subprocess.Popen[str]]) -> None:
 
 
 def _round_trips(
-    session: zenoh.Session, out: str, back: str, rate: float, cycles: int, warmup: int
+    session: zenoh.Session,
+    out: str,
+    back: str,
+    rate: float,
+    cycles: int,
+    warmup: int,
+    loop: asyncio.AbstractEventLoop | None = None,
 ) -> dict[str, Any]:
+    """Put on ``out`` at ``rate`` Hz, time until the sample is back on ``back``: in
+    Zenoh's callback, or, with ``loop``, once ``loop`` has been woken to take it."""
     got = threading.Event()
     arrived = [0]
 
-    def on_back(_: zenoh.Sample) -> None:
+    def stamp() -> None:
         arrived[0] = time.perf_counter_ns()
         got.set()
+
+    def on_back(_: zenoh.Sample) -> None:
+        if loop is None:
+            stamp()
+        else:
+            loop.call_soon_threadsafe(stamp)
 
     session.declare_subscriber(back, zenoh.handlers.Callback(on_back, indirect=False))
     pub = session.declare_publisher(out)
