@@ -34,6 +34,8 @@ PLANS = {
     "rap-1proc": HERE / "plans" / "one.yaml",
     "rap-5proc": HERE / "plans" / "five.yaml",
     "rap-echo": HERE / "plans" / "echo.yaml",
+    "rap-1proc-bare": HERE / "plans" / "one-bare.yaml",
+    "rap-5proc-bare": HERE / "plans" / "five-bare.yaml",
 }
 SYSTEM = "race"
 LOST_AFTER = 2.0
