@@ -1,5 +1,5 @@
-"""JSON Schema export of every wire message, the envelope and the deployment plan
-(``make schemas``)."""
+"""JSON Schema export of every wire message, the envelope, the system model (the
+deployment plan grown) and the view ``rap model show --json`` prints (``make schemas``)."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ from .catalog import MESSAGES
 from .envelope import Envelope
 from .knowledge import KbReply, KbRequest
 from .plan import DeploymentPlan
+from .view import ModelView
 
 __all__ = ["PLAN_SCHEMA", "render", "write"]
 
@@ -34,6 +35,7 @@ def render() -> dict[str, str]:
         ("rap.KbRequest/1", KbRequest),
         ("rap.KbReply/1", KbReply),
         ("rap.DeploymentPlan", DeploymentPlan),
+        ("rap.ModelView", ModelView),
     ]
     entries += [(m.TYPE, m) for m in MESSAGES]
     for type_name, cls in entries:

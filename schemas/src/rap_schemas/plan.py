@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import os
 import re
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -49,14 +50,25 @@ from .yamlconf import (
 __all__ = [
     "ENDPOINT",
     "MODULE_SPEC",
+    "BusSpec",
     "ComponentSpec",
     "ComputeNode",
+    "ConnectionSpec",
     "DeploymentPlan",
+    "Dispatch",
+    "FabricSpec",
+    "FieldSpec",
+    "Finding",
     "KnowledgeSpec",
+    "MessageSpec",
     "PlanDocument",
     "PlanError",
+    "PortSpec",
+    "Resources",
+    "TrustSpec",
     "load_plan",
     "parse_plan",
+    "plan_findings",
 ]
 
 MODULE_SPEC = re.compile(
@@ -95,6 +107,13 @@ class _Plan(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=Tru
     pass
 
 
+class Resources(_Plan, frozen=True, kw_only=True):
+    """What a compute node offers (informative; the generator sizes containers from it)."""
+
+    cpus: Annotated[float, msgspec.Meta(gt=0)] | None = None
+    memory_mb: Annotated[int, msgspec.Meta(gt=0)] | None = None
+
+
 class ComputeNode(_Plan, frozen=True, kw_only=True):
     """A machine (or container) that runs a share of the system."""
 
@@ -102,6 +121,107 @@ class ComputeNode(_Plan, frozen=True, kw_only=True):
     """Zenoh endpoints to listen on; empty: the fabric's default (loopback, free port)."""
     connect: list[Endpoint] = []
     """Zenoh endpoints to connect to."""
+    address: str | None = None
+    """Its host name or IP address on the network that links the compute nodes."""
+    architecture: str | None = None
+    """CPU architecture, e.g. ``x86_64``, ``aarch64``."""
+    resources: Resources = Resources()
+    origin: str | None = None
+    """What it was imported from (e.g. ``aadl processor platform.robot.RPI``)."""
+    doc: str = ""
+
+
+class BusSpec(_Plan, frozen=True, kw_only=True):
+    """A link between compute nodes (physical architecture)."""
+
+    kind: str = "ethernet"
+    nodes: list[Name] = []
+    """The compute nodes it connects."""
+    origin: str | None = None
+    doc: str = ""
+
+
+PortDirection = Literal["in", "out", "in-out"]
+PortKind = Literal["event", "data", "event-data"]
+
+
+class PortSpec(_Plan, frozen=True, kw_only=True):
+    """A port of a component (logical architecture)."""
+
+    direction: PortDirection
+    kind: PortKind = "event-data"
+    """``event``: a signal, maybe with a message; ``data``: a sampled value (the latest
+    counts); ``event-data``: a queued message."""
+    type: str | None = None
+    """The message it carries: a name under ``messages:`` or a RAP wire type such as
+    ``rap.LaserScan/1``; none for a bare event."""
+    topic: str | None = None
+    """The fabric name it uses (an event name or a data topic); ports of the same kind
+    family on the same topic are connected without a ``connections:`` entry."""
+    origin: str | None = None
+    doc: str = ""
+
+
+class Dispatch(_Plan, frozen=True, kw_only=True):
+    """When a component runs: on a period, or when an input arrives."""
+
+    kind: Literal["periodic", "sporadic"]
+    rate_hz: Annotated[float, msgspec.Meta(gt=0)] | None = None
+    """Periodic: how often; sporadic: the highest rate it must keep up with."""
+
+
+class ConnectionSpec(_Plan, frozen=True, kw_only=True):
+    """A connection from an output port to an input port: ``component.port``."""
+
+    from_: str = msgspec.field(name="from")
+    to: str
+    name: str | None = None
+    bus: Name | None = None
+    """The bus it travels over, when the components are on different compute nodes."""
+    bidirectional: bool = False
+    origin: str | None = None
+
+
+class FieldSpec(_Plan, frozen=True, kw_only=True):
+    """A field of a message. ``type``: ``bool``, ``int``, ``int8`` .. ``uint64``,
+    ``float``, ``float32``, ``str``, ``bytes``, a message or enumeration name,
+    ``list[T]``, ``list[T, N]`` (exactly N items) or ``optional[T]``."""
+
+    type: str
+    doc: str = ""
+    ge: float | None = None
+    le: float | None = None
+    gt: float | None = None
+    lt: float | None = None
+    min_length: Annotated[int, msgspec.Meta(ge=0)] | None = None
+    max_length: Annotated[int, msgspec.Meta(ge=0)] | None = None
+    pattern: str | None = None
+
+
+class MessageSpec(_Plan, frozen=True, kw_only=True):
+    """A message (``fields``) or an enumeration (``enum``) of the model."""
+
+    fields: dict[str, FieldSpec] = {}
+    enum: list[str] | None = None
+    """The literals of an enumeration (then ``fields`` stays empty)."""
+    origin: str | None = None
+    doc: str = ""
+
+
+class FabricSpec(_Plan, frozen=True, kw_only=True):
+    """How the compute nodes' fabric sessions find each other (Zenoh)."""
+
+    mode: Literal["peer", "client", "router"] = "peer"
+    routers: list[Endpoint] = []
+    """Zenoh routers every session connects to."""
+
+
+class TrustSpec(_Plan, frozen=True, kw_only=True):
+    """The runtime trust checker: where it runs and the specs it watches."""
+
+    node: Name | None = None
+    specs: list[str] = []
+    """Spec files (``.dsrv``), relative to the model file."""
 
 
 class KnowledgeSpec(_Plan, frozen=True, kw_only=True):
@@ -117,29 +237,55 @@ class KnowledgeSpec(_Plan, frozen=True, kw_only=True):
 
 
 class ComponentSpec(_Plan, frozen=True, kw_only=True):
-    """One MAPLE-K component: the Node to import, its stage, where it runs, its config."""
+    """A component: the Node to import (or none yet: to generate), its MAPLE-K stage or
+    role, where it runs, its config, and what the model says of its ports and knowledge."""
 
-    module: ModuleSpec
-    stage: Stage
-    """Must match the stage the Node declares."""
-    node: Name
+    module: ModuleSpec | None = None
+    """The Node it runs; none: to generate (``rap generate``), or run elsewhere
+    (``external``)."""
+    stage: Stage | None = None
+    """Its MAPLE-K stage; must match the stage the Node declares."""
+    role: str | None = None
+    """What it is when it is no stage, e.g. ``managed`` (the managed system)."""
+    external: bool = False
+    """It runs outside RAP's runners (a simulator, a robot's drivers): described for the
+    checks, never started by RAP."""
+    node: Name | None = None
     """The compute node that runs it."""
     config: dict[str, Any] = {}
     """Applied with ``Node.configure`` (validated against the Node's config Struct)."""
+    config_type: str | None = None
+    """The message of the model that describes its config."""
+    ports: dict[Name, PortSpec] = {}
+    reads: list[str] = []
+    """Knowledge keys it reads."""
+    writes: list[str] = []
+    """Knowledge keys it writes."""
+    dispatch: Dispatch | None = None
+    origin: str | None = None
+    """What it was imported from (e.g. ``aadl process m``, ``robochart stm Monitor``)."""
+    doc: str = ""
 
 
 class DeploymentPlan(_Plan, frozen=True, kw_only=True):
-    """A RAP deployment: compute nodes, knowledge and the components mapped onto them.
+    """RAP's system model: the components and their ports, messages and connections
+    (logical), compute nodes and buses (physical), the components mapped onto the
+    nodes, the fabric, knowledge and trust. A deployment plan is a model that gives
+    only what running it needs (nodes, mapping, modules).
 
     Component names are the names of their Nodes on the fabric."""
 
     system: Name
     """The system name: the ``<system>`` of every key, ``rap/<system>/...``."""
-    compute_nodes: Annotated[
-        dict[Name, ComputeNode], msgspec.Meta(extra_json_schema={"minProperties": 1})
-    ]
+    compute_nodes: dict[Name, ComputeNode]
     knowledge: KnowledgeSpec = KnowledgeSpec()
     components: dict[Name, ComponentSpec] = {}
+    messages: dict[Name, MessageSpec] = {}
+    connections: list[ConnectionSpec] = []
+    buses: dict[Name, BusSpec] = {}
+    fabric: FabricSpec = FabricSpec()
+    trust: TrustSpec = TrustSpec()
+    doc: str = ""
 
     def components_on(self, node: str) -> dict[str, ComponentSpec]:
         """The components mapped to compute node ``node``, in plan order."""
@@ -202,76 +348,121 @@ def load_plan(path: str | os.PathLike[str]) -> PlanDocument:
 
 
 def _check(doc: PlanDocument) -> None:
-    """What the types cannot say: names, references, module specs, endpoints."""
-    plan = doc.plan
+    """Raise the first of :func:`plan_findings` (what running the plan needs)."""
+    for loc, problem, key in plan_findings(doc.plan):
+        raise doc.error(loc, problem, key=key)
+
+
+Finding = tuple[Location, str, bool]
+"""Where (a path in the document), what is wrong and how to fix it, and whether the
+path points at a mapping key rather than its value."""
+
+
+def plan_findings(plan: DeploymentPlan) -> Iterator[Finding]:
+    """What the types cannot say and running the plan needs: names, references, module
+    specs, endpoints, every component on a compute node. All of them, in file order."""
     try:
         keys.system_pattern(plan.system)
     except keys.KeyError_ as exc:
-        raise doc.error(("system",), f"{exc}; this name is part of every key") from None
+        yield ("system",), f"{exc}; this name is part of every key", False
     nodes = list(plan.compute_nodes)
+    listed = ", ".join(nodes)
     if not nodes:
-        raise doc.error(
+        yield (
             ("compute_nodes",),
             "the plan defines no compute nodes; add one, e.g. 'compute_nodes: {laptop: {}}'",
+            False,
         )
     for name, compute in plan.compute_nodes.items():
-        _check_name(doc, ("compute_nodes", name), "compute node", name)
+        yield from _name_findings(("compute_nodes", name), "compute node", name)
         for field in ("listen", "connect"):
             for i, endpoint in enumerate(getattr(compute, field)):
                 if not ENDPOINT.fullmatch(endpoint):
-                    raise doc.error(
+                    yield (
                         ("compute_nodes", name, field, i),
                         f"compute node {name!r}: {endpoint!r} is not a Zenoh endpoint; "
                         "write '<protocol>/<address>', e.g. 'tcp/127.0.0.1:7447'",
+                        False,
                     )
     kb = plan.knowledge
     if kb.node is not None and kb.node not in plan.compute_nodes:
-        raise doc.error(
+        yield (
             ("knowledge", "node"),
             f"knowledge is placed on compute node {kb.node!r}, which the plan does not "
-            f"define; use one of {', '.join(nodes)} or add it under compute_nodes",
+            f"define; use one of {listed} or add it under compute_nodes",
+            False,
         )
     for field, backend in (("path", "sqlite"), ("url", "redis")):
         if getattr(kb, field) is not None and kb.backend != backend:
-            raise doc.error(
+            yield (
                 ("knowledge", field),
                 f"knowledge.{field} is for the {backend} backend, but the backend is "
                 f"{kb.backend!r}; set backend: {backend} or remove {field}",
+                False,
             )
+    if plan.trust.node is not None and plan.trust.node not in plan.compute_nodes:
+        yield (
+            ("trust", "node"),
+            f"the trust checker is placed on compute node {plan.trust.node!r}, which the "
+            f"plan does not define; use one of {listed} or add it under compute_nodes",
+            False,
+        )
+    for name, bus in plan.buses.items():
+        for i, node in enumerate(bus.nodes):
+            if node not in plan.compute_nodes:
+                yield (
+                    ("buses", name, "nodes", i),
+                    f"bus {name!r} connects compute node {node!r}, which the plan does not "
+                    f"define; use one of {listed} or add it under compute_nodes",
+                    False,
+                )
     modules: dict[str, str] = {}
     for name, comp in plan.components.items():
-        _check_name(doc, ("components", name), "component", name)
-        if not MODULE_SPEC.fullmatch(comp.module):
-            raise doc.error(
-                ("components", name, "module"),
-                f"component {name!r}: module {comp.module!r} is not a "
-                "'package.module:attribute' spec; write the module's dotted path, a colon, "
-                "then the name of the Node in it, e.g. 'lidar_occlusion.nodes:monitor'",
+        yield from _name_findings(("components", name), "component", name)
+        if comp.module is not None:
+            if not MODULE_SPEC.fullmatch(comp.module):
+                yield (
+                    ("components", name, "module"),
+                    f"component {name!r}: module {comp.module!r} is not a "
+                    "'package.module:attribute' spec; write the module's dotted path, a "
+                    "colon, then the name of the Node in it, e.g. "
+                    "'lidar_occlusion.nodes:monitor'",
+                    False,
+                )
+            elif comp.module in modules:
+                yield (
+                    ("components", name, "module"),
+                    f"component {name!r} names the same Node as component "
+                    f"{modules[comp.module]!r} ({comp.module}); a Node runs once: declare "
+                    "another Node for the second component",
+                    False,
+                )
+            else:
+                modules[comp.module] = name
+        if comp.node is None:
+            yield (
+                ("components", name),
+                f"component {name!r} is bound to no compute node; add 'node: <name>' "
+                f"with one of: {listed or '(none yet: add compute_nodes)'}",
+                True,
             )
-        if comp.module in modules:
-            raise doc.error(
-                ("components", name, "module"),
-                f"component {name!r} names the same Node as component "
-                f"{modules[comp.module]!r} ({comp.module}); a Node runs once: declare "
-                "another Node for the second component",
-            )
-        modules[comp.module] = name
-        if comp.node not in plan.compute_nodes:
-            raise doc.error(
+        elif comp.node not in plan.compute_nodes:
+            yield (
                 ("components", name, "node"),
                 f"component {name!r} is mapped to compute node {comp.node!r}, which the "
-                f"plan does not define; use one of {', '.join(nodes)} or add it under "
+                f"plan does not define; use one of {listed} or add it under "
                 "compute_nodes",
+                False,
             )
 
 
-def _check_name(doc: PlanDocument, loc: Location, what: str, name: str) -> None:
+def _name_findings(loc: Location, what: str, name: str) -> Iterator[Finding]:
     try:
         keys.alive("x", name)
     except keys.KeyError_:
-        raise doc.error(
+        yield (
             loc,
             f"invalid {what} name {name!r}: use one non-empty chunk of letters, digits "
             "and '_.-~+:@=%,' (no '/', no wildcards '*', '$', '#', '?')",
-            key=True,
-        ) from None
+            True,
+        )

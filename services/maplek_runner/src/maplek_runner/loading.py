@@ -118,6 +118,18 @@ def load_share(doc: PlanDocument, compute_node: str) -> NodeShare:
     loaded: list[LoadedComponent] = []
     for name, spec in plan.components_on(compute_node).items():
         loc = ("components", name)
+        if spec.external:
+            continue  # described for the checks; something else runs it
+        if spec.module is None:
+            raise _fail(
+                doc,
+                loc,
+                f"component {name!r} has no module: it is to be generated; run "
+                "'rap generate' on the model, or name its Node with 'module: "
+                "package.module:attribute' (or mark it 'external: true' if something "
+                "other than RAP runs it)",
+                key=True,
+            )
         try:
             node = import_node(spec.module)
         except LoadError as exc:
@@ -140,11 +152,13 @@ def load_share(doc: PlanDocument, compute_node: str) -> NodeShare:
             )
         if node.stage != spec.stage:
             declared = node.stage.value if node.stage is not None else "no stage"
+            planned = spec.stage.value if spec.stage is not None else "no stage"
             raise _fail(
                 doc,
-                (*loc, "stage"),
-                f"component {name!r} is stage {spec.stage.value!r} in the plan, but Node "
+                (*loc, "stage") if spec.stage is not None else loc,
+                f"component {name!r} is {planned!r} in the plan, but Node "
                 f"{node.name!r} declares {declared!r}; make them agree",
+                key=spec.stage is None,
             )
         loaded.append(LoadedComponent(name, spec, node, doc.where(loc, key=True)))
     for component in loaded:

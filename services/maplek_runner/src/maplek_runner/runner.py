@@ -73,7 +73,10 @@ async def run_share(
         share.compute_node,
         system,
         len(share.components),
-        ", ".join(f"{c.name} ({c.spec.stage.value}, {c.spec.module})" for c in share.components),
+        ", ".join(
+            f"{c.name} ({c.spec.stage or c.spec.role or 'no stage'}, {c.spec.module})"
+            for c in share.components
+        ),
     )
     async with run_nodes(
         share.nodes,
