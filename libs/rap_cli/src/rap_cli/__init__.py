@@ -1,0 +1,1 @@
+"""The ``rap`` command: RAP's toolkit for system models (check, show, import, export)."""
