@@ -2,18 +2,19 @@
 :mod:`bench.loop.chain`, with every knowledge read and write taken out.
 
 The analysis computes its mask from the race's scan, held here, instead of reading it
-from knowledge; the planner proposes without reading the mask or storing the plan.
+from knowledge; the planner proposes without reading the mask or storing the plan; the
+legitimate and execute stages, which use no knowledge, are the chain's own.
 Deployed like the chain (plans/five-bare.yaml, plans/one-bare.yaml), it shows what the
 loop costs without its knowledge: ``python -m bench.loop.split``.
 """
 
 from __future__ import annotations
 
-from rap_schemas import LaserScan, PlanProposal, SpinPlan
+from rap_schemas import LaserScan
 from rap_sdk import Context, Node
-from rap_sdk.gate import ApprovalGate, legitimate, propose
+from rap_sdk.gate import propose
 
-from .chain import LEGIT, PLAN, ROBOT, check_plan, mask_of
+from .chain import PLAN, ROBOT, executor, legitimator, mask_of
 from .rap import make_scan
 
 SCAN = make_scan()
@@ -21,9 +22,6 @@ SCAN = make_scan()
 monitor = Node("monitor", stage="monitor")
 analysis = Node("analysis", stage="analyse")
 planner = Node("planner", stage="plan")
-legitimator = Node("legitimate", stage="legitimate")
-executor = Node("executor", stage="execute")
-gate = ApprovalGate(legitimators={"legitimate"}, max_age=1.0)
 
 
 @monitor.on_data(f"{ROBOT}/scan")
@@ -42,11 +40,4 @@ async def make_plan(ctx: Context) -> None:
     await propose(ctx, PLAN)
 
 
-@legitimate(legitimator)
-async def check(ctx: Context, proposal: PlanProposal[SpinPlan]) -> str | None:
-    return check_plan(proposal, ctx.clock.time_ns(), LEGIT)
-
-
-@gate.on_approved(executor)
-async def act(ctx: Context, proposal: PlanProposal[SpinPlan]) -> None:
-    await ctx.publish(f"{ROBOT}/spin_config", proposal.plan)
+__all__ = ["analysis", "executor", "legitimator", "monitor", "planner"]

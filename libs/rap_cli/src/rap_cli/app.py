@@ -8,7 +8,6 @@ traceback.
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 from typing import Annotated
 
@@ -61,7 +60,7 @@ def _load(path: Path) -> CheckedModel:
 
 
 def _usage(message: str) -> None:
-    print(f"rap: error: {message}", file=sys.stderr)
+    typer.echo(f"rap: error: {message}", err=True)
     raise typer.Exit(UNUSABLE)
 
 
@@ -79,10 +78,10 @@ def check(model: ModelArg) -> None:
     without the Legitimate gate). Each finding names file:line:col."""
     checked = _load(model)
     for d in checked.diagnostics:
-        print(d)
+        typer.echo(d)
     if not checked.readable:
         raise typer.Exit(UNUSABLE)
-    print(f"{checked.source}: {_counts(checked.diagnostics)}")
+    typer.echo(f"{checked.source}: {_counts(checked.diagnostics)}")
     raise typer.Exit(OK if checked.ok else WRONG)
 
 
@@ -99,7 +98,7 @@ def show(
     checked = _load(model)
     view = model_view(checked)
     if as_json:
-        print(json.dumps(view, indent=2))
+        typer.echo(json.dumps(view, indent=2))
     else:
         _print_view(view)
     if not checked.readable:
@@ -112,26 +111,28 @@ def _print_view(view: dict[str, object]) -> None:
     assert isinstance(comps, list)
     bindings = view["bindings"]
     assert isinstance(bindings, dict)
-    print(f"components ({len(comps)}):")
+    typer.echo(f"components ({len(comps)}):")
     for c in comps:
         role = c["stage"] or c.get("role") or "-"
-        print(f"  {c['name']:<20} {role:<11} on {bindings.get(c['name']) or '(unbound)'}")
+        typer.echo(f"  {c['name']:<20} {role:<11} on {bindings.get(c['name']) or '(unbound)'}")
         for p in c["ports"]:
-            print(f"      {p['direction']:<6} {p['kind']:<10} {p['name']}: {p['type'] or '-'}")
+            typer.echo(f"      {p['direction']:<6} {p['kind']:<10} {p['name']}: {p['type'] or '-'}")
     for section in ("messages", "nodes", "connections", "diagnostics"):
         items = view[section]
         assert isinstance(items, list)
-        print(f"{section} ({len(items)}):")
+        typer.echo(f"{section} ({len(items)}):")
         for item in items:
             if section == "messages":
                 fields = ", ".join(f"{f['name']}: {f['type']}" for f in item["fields"])
-                print(f"  {item['name']} {{{fields}}}")
+                typer.echo(f"  {item['name']} {{{fields}}}")
             elif section == "nodes":
-                print(f"  {item['name']} {item['address'] or ''}".rstrip())
+                typer.echo(f"  {item['name']} {item['address'] or ''}".rstrip())
             elif section == "connections":
-                print(f"  {item['from']} -> {item['to']}")
+                typer.echo(f"  {item['from']} -> {item['to']}")
             else:
-                print(f"  {item['file']}:{item['line']}: {item['severity']}: {item['message']}")
+                typer.echo(
+                    f"  {item['file']}:{item['line']}: {item['severity']}: {item['message']}"
+                )
 
 
 def main() -> None:
