@@ -7,13 +7,16 @@ PYTEST_ARGS ?=
 DEMO_ARGS ?=
 EVAL_ARGS ?=
 FUZZ_ARGS ?=
+# third-party AADL / RoboChart designs the importers must read (not part of this repository)
+DESIGN_MODELS ?= $(abspath $(CURDIR)/../shared/models)
 
-.PHONY: help setup sync test lint format typecheck schemas bench bench-fabric bench-knowledge bench-sim bench-loop bench-fleet bench-trust fuzz demo eval clean
+.PHONY: help setup sync test acceptance lint format typecheck schemas bench bench-fabric bench-knowledge bench-sim bench-loop bench-fleet bench-trust fuzz demo eval clean
 
 help:
 	@echo "make demo       run the lidar-occlusion loop end to end (out/demo/summary.json, demo.rrd)"
 	@echo "make eval       evaluate the loop on seeded scenarios (out/eval/lidar_occlusion.json)"
 	@echo "make test       run the test suite (RAP_REQUIRE_SERVICES=1 makes missing servers fail)"
+	@echo "make acceptance the design parsers on third-party designs (DESIGN_MODELS=folder)"
 	@echo "make lint       ruff format check + ruff lint"
 	@echo "make typecheck  mypy --strict on schemas, libs and services"
 	@echo "make schemas    export JSON Schema of every wire message to schemas/json"
@@ -29,6 +32,10 @@ setup:
 
 test: setup
 	$(RUN) pytest $(PYTEST_ARGS)
+
+# the parsers against real third-party designs in $(DESIGN_MODELS) (fails when it is missing)
+acceptance: setup
+	DESIGN_MODELS="$(DESIGN_MODELS)" $(RUN) pytest acceptance $(PYTEST_ARGS)
 
 lint: setup
 	$(RUN) ruff format --check .

@@ -15,7 +15,7 @@ from typing import Literal
 
 Severity = Literal["error", "warning", "note"]
 
-__all__ = ["Diagnostic", "Severity", "errors", "sort_diagnostics"]
+__all__ = ["Diagnostic", "Loc", "Note", "Severity", "errors", "sort_diagnostics"]
 
 _RANK = {"error": 0, "warning": 1, "note": 2}
 
@@ -56,3 +56,29 @@ def errors(diagnostics: Iterable[Diagnostic]) -> list[Diagnostic]:
 def sort_diagnostics(diagnostics: Iterable[Diagnostic]) -> list[Diagnostic]:
     """By file, then position, then severity (errors first)."""
     return sorted(diagnostics, key=lambda d: (d.file, d.line, d.column, _RANK[d.severity]))
+
+
+@dataclass(frozen=True, slots=True)
+class Loc:
+    """Where a construct of a parsed design starts: the file as given to the parser,
+    1-based line and column (characters)."""
+
+    file: str
+    line: int
+    column: int
+
+    def __str__(self) -> str:
+        return f"{self.file}:{self.line}:{self.column}"
+
+
+@dataclass(frozen=True, slots=True)
+class Note:
+    """Something a parser read but does not model (an annex, a flows section, an unknown
+    block it skipped), so that nothing is dropped silently."""
+
+    loc: Loc
+    message: str
+
+    def diagnostic(self) -> Diagnostic:
+        """This note as a ``note`` diagnostic, for the same report as errors."""
+        return Diagnostic(self.loc.file, self.loc.line, self.loc.column, "note", self.message)
