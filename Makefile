@@ -19,7 +19,7 @@ help:
 	@echo "make acceptance the design parsers on third-party designs (DESIGN_MODELS=folder)"
 	@echo "make lint       ruff format check + ruff lint"
 	@echo "make typecheck  mypy --strict on schemas, libs and services"
-	@echo "make schemas    export JSON Schema of every wire message to schemas/json"
+	@echo "make schemas    export JSON Schema of every wire message to schemas/json, and the model reference"
 	@echo "make bench      run the benchmarks; results in bench/results and docs/benchmarks.md"
 	@echo "make bench-fleet  50 robots' loops at 5 Hz on this machine (bench/results/fleet.json)"
 	@echo "make fuzz       fuzz every subscriber of a running loop (bench/results/fuzz.json, docs/reliability.md)"
@@ -50,6 +50,7 @@ typecheck: setup
 
 schemas: setup
 	$(RUN) python -m rap_schemas export schemas/json
+	$(RUN) python -m rap_schemas reference docs/toolkit.md
 	$(RUN) python -m sim_world.schema
 
 # Both suites run even if the first misses a budget; make fails if either did.

@@ -18,7 +18,7 @@ from rap_sdk.fabric import free_port
 pytestmark = [pytest.mark.anyio, pytest.mark.zenoh, pytest.mark.slow]
 
 REPO = Path(__file__).resolve().parents[1]
-PLAN = REPO / "examples/lidar_occlusion/src/lidar_occlusion/plans/demo.yaml"
+PLAN = REPO / "examples/lidar_occlusion/model.yaml"
 
 
 async def _alive(fabric: ZenohFabric, name: str, up: bool, timeout: float) -> None:

@@ -80,3 +80,17 @@ envelopes = st.builds(
 def test_envelope_round_trip(env: Envelope) -> None:
     back = msgspec.msgpack.decode(msgspec.msgpack.encode(env), type=Envelope)
     assert back == env
+
+
+def test_the_model_reference_in_the_docs_is_current() -> None:
+    """docs/toolkit.md's model reference is generated from the schema: fails when a
+    field changed and `make schemas` was not run."""
+    from rap_schemas.reference import BEGIN, END, reference
+
+    doc = (EXPORT.parents[1] / "docs" / "toolkit.md").read_text(encoding="utf-8")
+    assert BEGIN in doc, "docs/toolkit.md lost its model-reference markers"
+    assert END in doc, "docs/toolkit.md lost its model-reference markers"
+    section = doc.split(BEGIN, 1)[1].split(END, 1)[0]
+    assert section.strip() == reference().strip(), "run `make schemas` and commit docs/toolkit.md"
+    assert "### PortSpec" in section
+    assert "`direction`" in section

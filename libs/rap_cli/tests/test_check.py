@@ -173,7 +173,7 @@ def test_unknown_fields_point_at_the_key_and_list_the_known_ones() -> None:
     found = _lines(GOOD.replace("  laptop: {address: 127.0.0.1}", "  laptop: {adress: x}"))
     assert found == [
         "m.yaml:3:12: error: $.compute_nodes.laptop: unknown field 'adress' - the fields "
-        "here are: address, architecture, connect, doc, listen, origin, resources"
+        "here are: address, architecture, connect, doc, listen, origin, properties, resources"
     ]
 
 
@@ -308,3 +308,24 @@ REPO = Path(__file__).resolve().parents[3]
 def test_every_shipped_deployment_plan_is_a_valid_model(plan: Path) -> None:
     res = runner.invoke(app, ["check", str(plan)])
     assert res.exit_code == 0, res.output
+
+
+def test_the_lidar_model_is_complete_and_clean() -> None:
+    """The model ``make demo`` runs: no finding at all, and its logical architecture
+    closes the loop robot -> monitor -> ... -> legitimate -> executor -> robot."""
+    model = REPO / "examples/lidar_occlusion/model.yaml"
+    checked = check_model_text(model.read_text(), str(model))
+    assert checked.diagnostics == []
+    res = runner.invoke(app, ["model", "show", str(model), "--json"])
+    assert res.exit_code == 0, res.output
+    view = json.loads(res.output)
+    links = {(c["from"], c["to"]) for c in view["connections"]}
+    assert {
+        ("robot.scan", "monitor.scan"),
+        ("monitor.new_data", "analysis.new_data"),
+        ("analysis.anomaly", "planner.anomaly"),
+        ("planner.proposal", "legitimate.proposal"),
+        ("legitimate.verdict", "executor.verdict"),
+        ("executor.spin_config", "robot.spin_config"),
+    } <= links
+    assert set(view["bindings"].values()) == {"laptop"}

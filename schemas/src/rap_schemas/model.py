@@ -206,13 +206,16 @@ def connections(plan: DeploymentPlan) -> list[Connection]:
 
 
 def _endpoint(plan: DeploymentPlan, text: str) -> tuple[str, str] | None:
-    comp, sep, port = text.partition(".")
-    if not sep:
-        return None
-    spec = plan.components.get(comp)
-    if spec is None or port not in spec.ports:
-        return None
-    return comp, port
+    """``component.port``; names may hold dots themselves (``managing.m.scan``): the
+    split is the one whose component and port both exist."""
+    at = text.find(".")
+    while at != -1:
+        comp, port = text[:at], text[at + 1 :]
+        spec = plan.components.get(comp)
+        if spec is not None and port in spec.ports:
+            return comp, port
+        at = text.find(".", at + 1)
+    return None
 
 
 # -- the checks ----------------------------------------------------------------------
@@ -226,7 +229,41 @@ def model_findings(plan: DeploymentPlan) -> list[ModelFinding]:
     found += _case_findings(plan)
     found += _knowledge_findings(plan)
     found += _gate_findings(plan)
+    found += _mode_findings(plan)
     return found
+
+
+def _mode_findings(plan: DeploymentPlan) -> Iterator[ModelFinding]:
+    """Threads and mode transitions name modes the component has."""
+    for cname, comp in plan.components.items():
+        modes = set(comp.modes)
+        listed = ", ".join(comp.modes) or "(none: add them under modes:)"
+        for tname, thread in comp.threads.items():
+            for i, mode in enumerate(thread.in_modes):
+                if mode not in modes:
+                    yield ModelFinding(
+                        ("components", cname, "threads", tname, "in_modes", i),
+                        "error",
+                        f"thread {cname}.{tname} exists in mode {mode!r}, which {cname} "
+                        f"does not have - use one of {listed}",
+                    )
+        for i, tr in enumerate(comp.mode_transitions):
+            for field, mode in (("from", tr.from_), ("to", tr.to)):
+                if mode not in modes:
+                    yield ModelFinding(
+                        ("components", cname, "mode_transitions", i, field),
+                        "error",
+                        f"a mode transition of {cname} names mode {mode!r}, which it does "
+                        f"not have - use one of {listed}",
+                    )
+            for j, trig in enumerate(tr.triggers):
+                if trig not in comp.ports:
+                    yield ModelFinding(
+                        ("components", cname, "mode_transitions", i, "triggers", j),
+                        "error",
+                        f"a mode transition of {cname} is triggered by {trig!r}, which is "
+                        f"not one of its ports - use one of {', '.join(comp.ports) or '(none)'}",
+                    )
 
 
 def _known_types(plan: DeploymentPlan) -> set[str]:
@@ -296,11 +333,23 @@ def _type_findings(plan: DeploymentPlan) -> Iterator[ModelFinding]:
                 )
 
 
+def _split(plan: DeploymentPlan, text: str) -> tuple[str, str, str]:
+    """``component.port`` split at the dot after the longest component name it starts
+    with (names may hold dots), or at the first dot when none matches."""
+    best = text.partition(".")
+    at = text.find(".")
+    while at != -1:
+        if text[:at] in plan.components:
+            best = (text[:at], ".", text[at + 1 :])
+        at = text.find(".", at + 1)
+    return best
+
+
 def _connection_findings(plan: DeploymentPlan) -> Iterator[ModelFinding]:
     names: dict[str, int] = {}
     for i, c in enumerate(plan.connections):
         for field, text, want in (("from", c.from_, _sends), ("to", c.to, _takes)):
-            cref, sep, pref = text.partition(".")
+            cref, sep, pref = _split(plan, text)
             spec = plan.components.get(cref)
             loc = ("connections", i, field)
             if not sep:

@@ -61,10 +61,12 @@ __all__ = [
     "Finding",
     "KnowledgeSpec",
     "MessageSpec",
+    "ModeTransitionSpec",
     "PlanDocument",
     "PlanError",
     "PortSpec",
     "Resources",
+    "ThreadSpec",
     "TrustSpec",
     "load_plan",
     "parse_plan",
@@ -111,7 +113,9 @@ class Resources(_Plan, frozen=True, kw_only=True):
     """What a compute node offers (informative; the generator sizes containers from it)."""
 
     cpus: Annotated[float, msgspec.Meta(gt=0)] | None = None
+    """CPU cores it offers."""
     memory_mb: Annotated[int, msgspec.Meta(gt=0)] | None = None
+    """Memory it offers, in MiB."""
 
 
 class ComputeNode(_Plan, frozen=True, kw_only=True):
@@ -128,17 +132,24 @@ class ComputeNode(_Plan, frozen=True, kw_only=True):
     resources: Resources = Resources()
     origin: str | None = None
     """What it was imported from (e.g. ``aadl processor platform.robot.RPI``)."""
+    properties: dict[str, str] = {}
+    """Properties of the design it came from that the model has no field for, as written
+    there (e.g. AADL ``Clock_Period``)."""
     doc: str = ""
+    """Its documentation."""
 
 
 class BusSpec(_Plan, frozen=True, kw_only=True):
     """A link between compute nodes (physical architecture)."""
 
     kind: str = "ethernet"
+    """What the link is: `ethernet`, `wifi`, `can`, ..."""
     nodes: list[Name] = []
     """The compute nodes it connects."""
     origin: str | None = None
+    """What it was imported from (the construct of a design)."""
     doc: str = ""
+    """Its documentation."""
 
 
 PortDirection = Literal["in", "out", "in-out"]
@@ -149,6 +160,7 @@ class PortSpec(_Plan, frozen=True, kw_only=True):
     """A port of a component (logical architecture)."""
 
     direction: PortDirection
+    """`in`, `out` or `in-out`."""
     kind: PortKind = "event-data"
     """``event``: a signal, maybe with a message; ``data``: a sampled value (the latest
     counts); ``event-data``: a queued message."""
@@ -159,27 +171,66 @@ class PortSpec(_Plan, frozen=True, kw_only=True):
     """The fabric name it uses (an event name or a data topic); ports of the same kind
     family on the same topic are connected without a ``connections:`` entry."""
     origin: str | None = None
+    """What it was imported from (the construct of a design)."""
+    properties: dict[str, str] = {}
+    """Properties of the design it came from that the model has no field for, as written there."""
     doc: str = ""
+    """Its documentation."""
 
 
 class Dispatch(_Plan, frozen=True, kw_only=True):
     """When a component runs: on a period, or when an input arrives."""
 
     kind: Literal["periodic", "sporadic"]
+    """`periodic`: on a period; `sporadic`: when an input arrives."""
     rate_hz: Annotated[float, msgspec.Meta(gt=0)] | None = None
     """Periodic: how often; sporadic: the highest rate it must keep up with."""
+
+
+class ThreadSpec(_Plan, frozen=True, kw_only=True):
+    """A thread of a component (an AADL thread): its own dispatch, and the modes it
+    exists in (all of them when empty)."""
+
+    dispatch: Dispatch | None = None
+    """When the thread runs."""
+    in_modes: list[Name] = []
+    """The modes of its component it exists in; empty: all."""
+    origin: str | None = None
+    """What it was imported from (the construct of a design)."""
+    properties: dict[str, str] = {}
+    """Properties of the design it came from that the model has no field for, as written there."""
+    doc: str = ""
+    """Its documentation."""
+
+
+class ModeTransitionSpec(_Plan, frozen=True, kw_only=True):
+    """A change of mode of a component, and the ports whose events trigger it."""
+
+    from_: Name = msgspec.field(name="from")
+    """The mode it leaves."""
+    to: Name
+    """The mode it enters."""
+    triggers: list[str] = []
+    """The ports of the component whose events trigger it."""
+    origin: str | None = None
+    """What it was imported from (the construct of a design)."""
 
 
 class ConnectionSpec(_Plan, frozen=True, kw_only=True):
     """A connection from an output port to an input port: ``component.port``."""
 
     from_: str = msgspec.field(name="from")
+    """The output: `component.port`."""
     to: str
+    """The input: `component.port`."""
     name: str | None = None
+    """Its name in the design (AADL connection name), for findings."""
     bus: Name | None = None
     """The bus it travels over, when the components are on different compute nodes."""
     bidirectional: bool = False
+    """Both ways (AADL `<->`, a bidirectional RoboChart connection)."""
     origin: str | None = None
+    """What it was imported from (the construct of a design)."""
 
 
 class FieldSpec(_Plan, frozen=True, kw_only=True):
@@ -188,30 +239,43 @@ class FieldSpec(_Plan, frozen=True, kw_only=True):
     ``list[T]``, ``list[T, N]`` (exactly N items) or ``optional[T]``."""
 
     type: str
+    """Its type (see above)."""
     doc: str = ""
+    """Its documentation."""
     ge: float | None = None
+    """Least value allowed (numbers)."""
     le: float | None = None
+    """Greatest value allowed (numbers)."""
     gt: float | None = None
+    """Values must be above this (numbers)."""
     lt: float | None = None
+    """Values must be below this (numbers)."""
     min_length: Annotated[int, msgspec.Meta(ge=0)] | None = None
+    """Least length (strings, bytes, lists)."""
     max_length: Annotated[int, msgspec.Meta(ge=0)] | None = None
+    """Greatest length (strings, bytes, lists)."""
     pattern: str | None = None
+    """A regular expression strings must match."""
 
 
 class MessageSpec(_Plan, frozen=True, kw_only=True):
     """A message (``fields``) or an enumeration (``enum``) of the model."""
 
     fields: dict[str, FieldSpec] = {}
+    """Its fields, in order."""
     enum: list[str] | None = None
     """The literals of an enumeration (then ``fields`` stays empty)."""
     origin: str | None = None
+    """What it was imported from (the construct of a design)."""
     doc: str = ""
+    """Its documentation."""
 
 
 class FabricSpec(_Plan, frozen=True, kw_only=True):
     """How the compute nodes' fabric sessions find each other (Zenoh)."""
 
     mode: Literal["peer", "client", "router"] = "peer"
+    """The Zenoh session mode of every process."""
     routers: list[Endpoint] = []
     """Zenoh routers every session connects to."""
 
@@ -220,6 +284,7 @@ class TrustSpec(_Plan, frozen=True, kw_only=True):
     """The runtime trust checker: where it runs and the specs it watches."""
 
     node: Name | None = None
+    """The compute node that runs the trust checker."""
     specs: list[str] = []
     """Spec files (``.dsrv``), relative to the model file."""
 
@@ -228,6 +293,7 @@ class KnowledgeSpec(_Plan, frozen=True, kw_only=True):
     """Where knowledge lives and how it is stored."""
 
     backend: Literal["memory", "sqlite", "redis"] = "memory"
+    """`memory` (lost on restart), `sqlite` (a file) or `redis`."""
     node: Name | None = None
     """The compute node that hosts the knowledge service."""
     path: str | None = None
@@ -257,14 +323,25 @@ class ComponentSpec(_Plan, frozen=True, kw_only=True):
     config_type: str | None = None
     """The message of the model that describes its config."""
     ports: dict[Name, PortSpec] = {}
+    """Its ports (logical architecture)."""
     reads: list[str] = []
     """Knowledge keys it reads."""
     writes: list[str] = []
     """Knowledge keys it writes."""
     dispatch: Dispatch | None = None
+    """When it runs."""
+    threads: dict[Name, ThreadSpec] = {}
+    """Its threads, when the design says how it is split (AADL threads)."""
+    modes: list[Name] = []
+    """Its operating modes, the initial one first."""
+    mode_transitions: list[ModeTransitionSpec] = []
+    """How it changes mode."""
     origin: str | None = None
     """What it was imported from (e.g. ``aadl process m``, ``robochart stm Monitor``)."""
+    properties: dict[str, str] = {}
+    """Properties of the design it came from that the model has no field for."""
     doc: str = ""
+    """Its documentation."""
 
 
 class DeploymentPlan(_Plan, frozen=True, kw_only=True):
@@ -279,13 +356,21 @@ class DeploymentPlan(_Plan, frozen=True, kw_only=True):
     """The system name: the ``<system>`` of every key, ``rap/<system>/...``."""
     compute_nodes: dict[Name, ComputeNode]
     knowledge: KnowledgeSpec = KnowledgeSpec()
+    """Where knowledge lives."""
     components: dict[Name, ComponentSpec] = {}
+    """The components (logical architecture) and where each runs (mapping)."""
     messages: dict[Name, MessageSpec] = {}
+    """The messages and enumerations ports and fields use."""
     connections: list[ConnectionSpec] = []
+    """Connections between ports (more are implied by shared topics)."""
     buses: dict[Name, BusSpec] = {}
+    """Links between compute nodes (physical architecture)."""
     fabric: FabricSpec = FabricSpec()
+    """How the fabric sessions connect."""
     trust: TrustSpec = TrustSpec()
+    """The runtime trust checker."""
     doc: str = ""
+    """What the system is."""
 
     def components_on(self, node: str) -> dict[str, ComponentSpec]:
         """The components mapped to compute node ``node``, in plan order."""

@@ -2,10 +2,10 @@
 
 Three kinds of processes on loopback Zenoh: this one (sim_world in lockstep with the
 loop, the observer, Rerun logging), the knowledge service (memory backend) and one
-``maplek_runner`` per compute node of the plan (the shipped plan: the five MAPLE-K
-nodes in one runner). Prints a summary and writes ``<out>/summary.json`` and
-``<out>/demo.rrd``; exits 1 when the loop did not close (no anomaly, or no plan reached
-the robot), 2 on bad input.
+``maplek_runner`` per compute node of the plan (by default the case's system model,
+``examples/lidar_occlusion/model.yaml``: the five MAPLE-K nodes in one runner). Prints
+a summary and writes ``<out>/summary.json`` and ``<out>/demo.rrd``; exits 1 when the
+loop did not close (no anomaly, or no plan reached the robot), 2 on bad input.
 """
 
 from __future__ import annotations
@@ -39,7 +39,15 @@ log = logging.getLogger("lidar_occlusion.demo")
 cli = typer.Typer(add_completion=False, help=__doc__)
 
 
+MODEL = Path(__file__).resolve().parents[2] / "model.yaml"
+"""The case's system model, ``examples/lidar_occlusion/model.yaml``: what the demo runs."""
+
+
 def default_plan_path(name: str = "demo") -> Path:
+    """The plan the demo runs by default (``demo``: the case's model) or a shipped plan
+    (``five_processes``)."""
+    if name == "demo":
+        return MODEL
     return Path(str(resources.files("lidar_occlusion") / "plans" / f"{name}.yaml"))
 
 
@@ -120,7 +128,10 @@ def _report(s: dict[str, Any], out: Path) -> str:
 def main(
     out: Annotated[Path, typer.Option(help="Output directory.")] = Path("out/demo"),
     duration: Annotated[float, typer.Option(help="Seconds of sim time.")] = 60.0,
-    plan: Annotated[Path | None, typer.Option(help="Deployment plan (default: shipped).")] = None,
+    plan: Annotated[
+        Path | None,
+        typer.Option(help="System model or plan (default: examples/lidar_occlusion/model.yaml)."),
+    ] = None,
     world: Annotated[
         str | None, typer.Option(help="A shipped world's name or a world file (default: default).")
     ] = None,
