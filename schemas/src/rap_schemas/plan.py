@@ -524,7 +524,7 @@ def plan_findings(plan: DeploymentPlan) -> Iterator[Finding]:
                 )
             else:
                 modules[comp.module] = name
-        if comp.node is None:
+        if comp.node is None and not comp.external:
             yield (
                 ("components", name),
                 f"component {name!r} is bound to no compute node; add 'node: <name>' "

@@ -9,57 +9,87 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, NoReturn
 
 import typer
 
+from .designs import FORMATS, DesignError, Format, checked_import, detect, import_design, load
 from .diagnostics import Diagnostic
-from .model_io import CheckedModel, check_model_file
+from .exporters.aadl import export_aadl, write_aadl
+from .model_io import CheckedModel
+from .model_yaml import model_to_yaml
 from .view import model_view
 
 app = typer.Typer(
     name="rap",
-    help="RAP's toolkit: check and show system models.",
+    help="RAP's toolkit: import designs (AADL, AADL-IL, RoboChart), check and show system "
+    "models, export them as AADL.",
     no_args_is_help=True,
-    rich_markup_mode="rich",
+    rich_markup_mode="markdown",
     pretty_exceptions_enable=False,
     add_completion=False,
 )
 model_app = typer.Typer(help="Look at a system model.", no_args_is_help=True)
 app.add_typer(model_app, name="model")
+import_app = typer.Typer(
+    help="Import a design into a RAP system model (YAML).", no_args_is_help=True
+)
+app.add_typer(import_app, name="import")
+export_app = typer.Typer(help="Write a system model in another language.", no_args_is_help=True)
+app.add_typer(export_app, name="export")
 
 OK, WRONG, UNUSABLE = 0, 1, 2
 
 ModelArg = Annotated[
-    Path,
+    list[Path],
     typer.Argument(
-        help="The model: a RAP model file (model.yaml).", show_default=False, metavar="MODEL"
+        help="The model: a RAP model (model.yaml, or a folder holding one) or a design to "
+        "import: AADL (.aadl files or their folder), AADL-IL (design.json), RoboChart "
+        "(.rct/.rac files or their folder).",
+        show_default=False,
+        metavar="MODEL...",
+    ),
+]
+FormatOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--format",
+        help="The model's format when its file names do not tell: " + ", ".join(FORMATS) + ".",
+        show_default=False,
+    ),
+]
+RootOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--root",
+        help="AADL: the system implementation to instantiate (default: the one no other contains).",
+        show_default=False,
     ),
 ]
 
 
 @app.callback()
 def _root() -> None:
-    """RAP's toolkit: check and show system models."""
+    """RAP's toolkit: import designs, check and show system models, export them."""
 
 
-def _load(path: Path) -> CheckedModel:
-    if path.is_dir():
-        candidate = path / "model.yaml"
-        if not candidate.is_file():
-            _usage(f"{path}: a directory with no model.yaml - name the model file")
-        path = candidate
-    elif not path.exists():
-        _usage(f"{path}: no such file - check the path")
-    elif path.suffix.lower() not in (".yaml", ".yml"):
-        _usage(
-            f"{path}: not a RAP model (.yaml) - the importers of AADL (.aadl), AADL-IL "
-            "(design.json) and RoboChart (.rct) designs are not part of this version"
-        )
-    return check_model_file(path)
+def _format(value: str | None) -> Format | None:
+    if value is None:
+        return None
+    for f in FORMATS:
+        if f == value:
+            return f
+    _usage(f"--format {value!r} is not one of {', '.join(FORMATS)} - use one of them")
 
 
-def _usage(message: str) -> None:
+def _load(paths: list[Path], fmt: str | None = None, root: str | None = None) -> CheckedModel:
+    try:
+        return load(paths, _format(fmt), root=root)
+    except DesignError as exc:
+        _usage(str(exc))
+
+
+def _usage(message: str) -> NoReturn:
     typer.echo(f"rap: error: {message}", err=True)
     raise typer.Exit(UNUSABLE)
 
@@ -71,12 +101,12 @@ def _counts(diags: list[Diagnostic]) -> str:
 
 
 @app.command()
-def check(model: ModelArg) -> None:
+def check(model: ModelArg, fmt: FormatOpt = None, root: RootOpt = None) -> None:
     """Check a model: its schema, then what running it needs, then the cross-checks
     (inputs nobody produces, outputs nobody consumes, types across connections, names
     that do not exist, knowledge read but never written, an execute stage reachable
     without the Legitimate gate). Each finding names file:line:col."""
-    checked = _load(model)
+    checked = _load(model, fmt, root)
     for d in checked.diagnostics:
         typer.echo(d)
     if not checked.readable:
@@ -91,11 +121,13 @@ def show(
     as_json: Annotated[
         bool, typer.Option("--json", help="The normalized model as JSON (rap.ModelView).")
     ] = False,
+    fmt: FormatOpt = None,
+    root: RootOpt = None,
 ) -> None:
     """Print the normalized model: components with their ports, messages, compute
     nodes, bindings, connections and the checks' findings. Exit 0 when there is no
     error, 1 when the model has errors (still printed), 2 when it cannot be read."""
-    checked = _load(model)
+    checked = _load(model, fmt, root)
     view = model_view(checked)
     if as_json:
         typer.echo(json.dumps(view, indent=2))
@@ -133,6 +165,115 @@ def _print_view(view: dict[str, object]) -> None:
                 typer.echo(
                     f"  {item['file']}:{item['line']}: {item['severity']}: {item['message']}"
                 )
+
+
+PathsArg = Annotated[
+    list[Path],
+    typer.Argument(help="The design's files, or folders holding them.", show_default=False),
+]
+OutOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--output",
+        "-o",
+        help="Where to write the model (default: standard output).",
+        show_default=False,
+    ),
+]
+
+
+def _import(fmt: Format, paths: list[Path], output: Path | None, root: str | None) -> None:
+    try:
+        _, files = detect(paths, fmt)
+        imported = import_design(fmt, files, root=root)
+    except DesignError as exc:
+        _usage(str(exc))
+    checked = checked_import(imported, ", ".join(map(str, paths)))
+    for d in checked.diagnostics:
+        typer.echo(d, err=True)
+    plan = checked.plan
+    if plan is None or not checked.readable:
+        typer.echo(f"rap: nothing imported: {_counts(checked.diagnostics)}", err=True)
+        raise typer.Exit(UNUSABLE)
+    header = (
+        f"Imported by `rap import {fmt}` from {len(files)} file(s): "
+        + " ".join(f.name for f in files[:8])
+        + (" ..." if len(files) > 8 else "")
+        + "\nCheck it with `rap check`; "
+        + ("the design has errors (see `rap check`)." if not checked.ok else "it checked clean.")
+    )
+    text = model_to_yaml(plan, header)
+    if output is None:
+        typer.echo(text, nl=False)
+    else:
+        try:
+            output.parent.mkdir(parents=True, exist_ok=True)
+            output.write_text(text, encoding="utf-8")
+        except OSError as exc:
+            _usage(f"{output}: cannot write the model ({exc.strerror}) - choose another path")
+    where = output if output is not None else "standard output"
+    typer.echo(
+        f"{where}: {len(plan.components)} component(s), {len(plan.messages)} message(s), "
+        f"{len(plan.compute_nodes)} compute node(s), {len(plan.connections)} "
+        f"connection(s); {_counts(checked.diagnostics)}",
+        err=True,
+    )
+    raise typer.Exit(OK if checked.ok else WRONG)
+
+
+@import_app.command("aadl")
+def import_aadl_cmd(paths: PathsArg, output: OutOpt = None, root: RootOpt = None) -> None:
+    """An AADL v2 design: its components are the processes of the root system's
+    instance tree, its compute nodes the processors, its bindings
+    Actual_Processor_Binding; messages from data types (the Data_Model annex). Exit 0
+    when the design has no error, 1 when it has (the model is still written), 2 when
+    nothing could be read."""
+    _import("aadl", paths, output, root)
+
+
+@import_app.command("aadl-il")
+def import_aadl_il_cmd(paths: PathsArg, output: OutOpt = None) -> None:
+    """RPIO's AADL-IL (design.json): its processes, ports, messages, compute nodes and
+    bindings, with the file's defects reported."""
+    _import("aadl-il", paths, output, None)
+
+
+@import_app.command("robochart")
+def import_robochart_cmd(paths: PathsArg, output: OutOpt = None) -> None:
+    """A RoboChart design (.rct, with RoboArch .rac where given): each state machine
+    a component, each connection endpoint a port, each record a message."""
+    _import("robochart", paths, output, None)
+
+
+@export_app.command("aadl")
+def export_aadl_cmd(
+    model: ModelArg,
+    output: Annotated[
+        Path, typer.Option("--output", "-o", help="The folder to write the AADL files into.")
+    ],
+    fmt: FormatOpt = None,
+    root: RootOpt = None,
+) -> None:
+    """Write the model as AADL v2: the RAP property set, the messages (Data_Model
+    types), the logical architecture (processes, ports, threads, modes, connections),
+    the physical one (processors, buses) and the root system with the bindings.
+    `rap import aadl` reads the folder back to the same model. Exit 1 (and nothing
+    written) when the model has errors."""
+    checked = _load(model, fmt, root)
+    for d in checked.diagnostics:
+        typer.echo(d, err=True)
+    if not checked.readable:
+        raise typer.Exit(UNUSABLE)
+    if checked.plan is None or not checked.ok:
+        typer.echo(f"rap: not exported: {_counts(checked.diagnostics)}", err=True)
+        raise typer.Exit(WRONG)
+    try:
+        written = write_aadl(checked.plan, output)
+    except OSError as exc:
+        _usage(f"{output}: cannot write there ({exc.strerror}) - choose another folder")
+    root_impl = export_aadl(checked.plan).root
+    typer.echo(f"wrote {len(written)} files to {output} (root system {root_impl})")
+    raise typer.Exit(OK)
 
 
 def main() -> None:

@@ -362,7 +362,8 @@ class Renames:
 @dataclass(frozen=True, slots=True)
 class Package:
     """``package a::b public ... [private ...] [properties ...] end a::b;``. ``withs`` are
-    the imported packages and property sets of both sections, in order."""
+    the imported packages and property sets of both sections, in order; ``with_locs``
+    where each of them is written (same order)."""
 
     loc: Loc
     name: str
@@ -371,6 +372,7 @@ class Package:
     public: tuple[Declaration, ...] = ()
     private: tuple[Declaration, ...] = ()
     properties: tuple[PropertyAssociation, ...] = ()
+    with_locs: tuple[Loc, ...] = ()
 
     @property
     def declarations(self) -> tuple[Declaration, ...]:
@@ -466,7 +468,8 @@ class PropertyConstant:
 
 @dataclass(frozen=True, slots=True)
 class PropertySet:
-    """``property set Name is [with ..;] ... end Name;``."""
+    """``property set Name is [with ..;] ... end Name;``; ``with_locs`` are where the
+    names of ``withs`` are written."""
 
     loc: Loc
     name: str
@@ -474,6 +477,7 @@ class PropertySet:
     types: tuple[PropertyTypeDecl, ...] = ()
     definitions: tuple[PropertyDefinition, ...] = ()
     constants: tuple[PropertyConstant, ...] = ()
+    with_locs: tuple[Loc, ...] = ()
 
     def unit_literals(self) -> Iterator[UnitLiteral]:
         """Every unit this set declares, in its units types and inline ``units (..)``."""

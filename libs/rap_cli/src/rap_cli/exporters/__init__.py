@@ -1,0 +1,1 @@
+"""Exporters: a RAP system model written in a design language (AADL)."""
