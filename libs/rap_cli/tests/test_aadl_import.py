@@ -10,6 +10,7 @@ from pathlib import Path
 import jsonschema
 import msgspec
 import pytest
+from rap_cli.exporters.aadl import PROPERTY_SET
 from rap_cli.importers import Imported
 from rap_cli.importers.aadl import import_aadl
 from rap_schemas.maplek import Stage
@@ -368,3 +369,43 @@ def test_bidirectional_and_array_connection(tmp_path: Path) -> None:
         ("p.o", "q_1.i", True, "c1/i1"),
         ("p.o", "q_2.i", True, "c1/i1_2"),
     ]
+
+
+_RAP_DESIGN = """
+package d
+public
+  with RAP;
+  data W
+  properties
+    RAP::Wire_Type => "rap.LaserScan/2";
+  end W;
+  process monitor
+  features
+    scan: in data port W {RAP::Name => "scan-in"; Opaque_Prop => 3;};
+  properties
+    RAP::Role => "managed";
+    RAP::Reads => ("laser_scan");
+  end monitor;
+  process implementation monitor.impl
+  end monitor.impl;
+  system top
+  end top;
+  system implementation top.impl
+  subcomponents
+    monitor: process monitor.impl {RAP::Name => "robot-1";};
+  end top.impl;
+end d;
+"""
+
+
+def test_rap_properties_decide_over_inference_and_stay_out_of_properties(
+    tmp_path: Path,
+) -> None:
+    imported = import_aadl(_write(tmp_path, RAP=PROPERTY_SET, d=_RAP_DESIGN))
+    plan = _plan(imported)
+    comp = plan.components["robot-1"]
+    assert comp.stage is None  # the name says monitor, but RAP::Role decides
+    assert (comp.role, comp.reads, comp.properties) == ("managed", ["laser_scan"], {})
+    port = comp.ports["scan-in"]
+    assert (port.type, port.properties) == ("rap.LaserScan/2", {"Opaque_Prop": "3"})
+    assert plan.messages == {}  # a wire type is no message

@@ -64,6 +64,8 @@ __all__ = [
     "ModeTransitionSpec",
     "PlanDocument",
     "PlanError",
+    "PortDirection",
+    "PortKind",
     "PortSpec",
     "Resources",
     "ThreadSpec",

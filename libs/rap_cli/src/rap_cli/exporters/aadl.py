@@ -6,7 +6,8 @@ Five files, one package each (``S`` is the system's identifier):
 - ``RAP.aadl``: the ``RAP`` property set, for what AADL has no property of (a
   component's MAPLE-K stage, its Node module, knowledge keys, topics, RAP's own wire
   types, the knowledge backend);
-- ``S_messages.aadl``: the messages as data types with the Data_Model annex's properties
+- ``S_messages.aadl`` (:mod:`.aadl_types`): the messages as data types with the
+  Data_Model annex's properties
   (a message is a ``Struct`` data implementation whose subcomponents are its fields, an
   enumeration an ``Enum`` with ``Enumerators``, a list an ``Array`` with ``Base_Type``
   and, for a fixed length, ``Dimension``);
@@ -26,14 +27,14 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 from rap_schemas import DeploymentPlan
-from rap_schemas.model import TypeSyntaxError, parse_type
-from rap_schemas.plan import ComponentSpec, ComputeNode, FieldSpec, PortSpec
+from rap_schemas.plan import ComponentSpec, ComputeNode, PortSpec
 
-from .aadl_names import Names, aadl_string, ident
+from .aadl_names import Names, aadl_string, common, ident, props_block, real, strings
+from .aadl_types import Types, messages_section
 
 __all__ = ["PROPERTY_SET", "export_aadl", "write_aadl"]
 
@@ -49,6 +50,7 @@ property set RAP is
   External: aadlboolean applies to (process, device);
   Config: aadlstring applies to (process);
   Config_Type: aadlstring applies to (process);
+  Mode_Transitions: aadlstring applies to (process);
   Reads: list of aadlstring applies to (process);
   Writes: list of aadlstring applies to (process);
   Dispatch: enumeration (periodic, sporadic) applies to (process);
@@ -76,172 +78,11 @@ property set RAP is
 end RAP;
 """
 
-_SCALARS = {
-    "bool": "Base_Types::Boolean",
-    "int": "Base_Types::Integer",
-    "int8": "Base_Types::Integer_8",
-    "int16": "Base_Types::Integer_16",
-    "int32": "Base_Types::Integer_32",
-    "int64": "Base_Types::Integer_64",
-    "uint8": "Base_Types::Unsigned_8",
-    "uint16": "Base_Types::Unsigned_16",
-    "uint32": "Base_Types::Unsigned_32",
-    "uint64": "Base_Types::Unsigned_64",
-    "float": "Base_Types::Float",
-    "float32": "Base_Types::Float_32",
-    "float64": "Base_Types::Float_64",
-    "str": "Base_Types::String",
-}
 _KINDS = {"event": "event port", "data": "data port", "event-data": "event data port"}
 _DIRS = {"in": "in", "out": "out", "in-out": "in out"}
 
 
-def _props(items: list[str], indent: str) -> list[str]:
-    if not items:
-        return []
-    return [f"{indent}properties", *(f"{indent}  {p};" for p in items)]
-
-
-def _strings(values: list[str]) -> str:
-    return "(" + ", ".join(aadl_string(v) for v in values) + ")"
-
-
-def _real(value: float) -> str:
-    text = repr(float(value))
-    return text if "e" in text or "." in text else f"{text}.0"
-
-
-def _common(name: str, ident_: str, doc: str, properties: dict[str, str]) -> list[str]:
-    out = []
-    if ident_ != name:
-        out.append(f"RAP::Name => {aadl_string(name)}")
-    if doc:
-        out.append(f"RAP::Doc => {aadl_string(doc)}")
-    if properties:
-        out.append(
-            f"RAP::Design_Properties => {_strings([f'{k} => {v}' for k, v in properties.items()])}"
-        )
-    return out
-
-
-@dataclass
-class _Types:
-    """The data types of the messages package: messages, enumerations, RAP wire types
-    and the array types lists need."""
-
-    pkg: str
-    names: Names = field(default_factory=Names)
-    extra: list[str] = field(default_factory=list)
-    _arrays: dict[str, str] = field(default_factory=dict)
-    _wire: dict[str, str] = field(default_factory=dict)
-
-    def wire(self, type_name: str) -> str:
-        """The data type standing for RAP wire type ``type_name`` (``rap.LaserScan/2``)."""
-        if type_name not in self._wire:
-            local = self.names(f"wire {type_name}")
-            self._wire[type_name] = local
-            self.extra += [
-                f"  data {local}",
-                "  properties",
-                f"    RAP::Wire_Type => {aadl_string(type_name)};",
-                f"  end {local};",
-                "",
-            ]
-        return f"{self.pkg}::{self._wire[type_name]}"
-
-    def field_type(self, text: str) -> tuple[str, bool]:
-        """The AADL classifier of field type ``text``, and whether it says the type
-        exactly (False: the field also needs ``RAP::Field_Type``)."""
-        try:
-            parsed = parse_type(text)
-        except TypeSyntaxError:
-            return "Base_Types::String", False
-        return self._classifier(str(parsed))
-
-    def _classifier(self, text: str) -> tuple[str, bool]:
-        if text in _SCALARS:
-            return _SCALARS[text], True
-        if text.startswith("list[") and text.endswith("]"):
-            inner, size = _split_list(text[5:-1])
-            elem, exact = self._classifier(inner)
-            key = f"{elem}[{size}]"
-            if key not in self._arrays:
-                local = self.names(f"{elem.rsplit('::', 1)[-1]} array {size or ''}".strip())
-                self._arrays[key] = local
-                props = [
-                    "Data_Model::Data_Representation => Array",
-                    f"Data_Model::Base_Type => (classifier ({elem}))",
-                ]
-                if size:
-                    props.append(f"Data_Model::Dimension => ({size})")
-                self.extra += [f"  data {local}", *_props(props, "  "), f"  end {local};", ""]
-            return f"{self.pkg}::{self._arrays[key]}", exact
-        if text.startswith(("optional[", "bytes")) or text == "bytes":
-            return "Base_Types::String", False
-        return f"{self.pkg}::{self.names(text)}", True
-
-
-def _split_list(inner: str) -> tuple[str, str]:
-    depth = 0
-    for i, ch in enumerate(inner):
-        depth += ch == "["
-        depth -= ch == "]"
-        if ch == "," and depth == 0:
-            return inner[:i].strip(), inner[i + 1 :].strip()
-    return inner.strip(), ""
-
-
-def _constraints(spec: FieldSpec) -> str:
-    parts = [
-        f"{name}={getattr(spec, name)!r}"
-        for name in ("ge", "le", "gt", "lt", "min_length", "max_length", "pattern")
-        if getattr(spec, name) is not None
-    ]
-    return "; ".join(parts)
-
-
-def _messages(plan: DeploymentPlan, types: _Types) -> list[str]:
-    out: list[str] = []
-    for name in plan.messages:
-        types.names(name)
-    for name, msg in plan.messages.items():
-        local = types.names(name)
-        common = _common(name, local, msg.doc, {})
-        if msg.enum is not None:
-            props = [
-                "Data_Model::Data_Representation => Enum",
-                f"Data_Model::Enumerators => {_strings(msg.enum)}",
-                *common,
-            ]
-            out += [f"  data {local}", *_props(props, "  "), f"  end {local};", ""]
-            continue
-        out += [f"  data {local}", *_props(common, "  "), f"  end {local};", ""]
-        fields = Names()
-        subs: list[str] = []
-        for fname, spec in msg.fields.items():
-            classifier, exact = types.field_type(spec.type)
-            fid = fields(fname)
-            extra = _common(fname, fid, spec.doc, {})
-            if not exact:
-                extra.append(f"RAP::Field_Type => {aadl_string(spec.type)}")
-            cons = _constraints(spec)
-            if cons:
-                extra.append(f"RAP::Constraints => {aadl_string(cons)}")
-            block = " {" + " ".join(f"{p};" for p in extra) + "}" if extra else ""
-            subs.append(f"    {fid}: data {classifier}{block};")
-        body = ["  subcomponents", *subs] if subs else []
-        out += [
-            f"  data implementation {local}.impl",
-            *body,
-            "  properties",
-            "    Data_Model::Data_Representation => Struct;",
-            f"  end {local}.impl;",
-            "",
-        ]
-    return out
-
-
-def _port(pid: str, pname: str, port: PortSpec, types: _Types) -> str:
+def _port(pid: str, pname: str, port: PortSpec, types: Types) -> str:
     kind = _KINDS[port.kind]
     classifier = ""
     if port.type is not None:
@@ -251,7 +92,7 @@ def _port(pid: str, pname: str, port: PortSpec, types: _Types) -> str:
             classifier = " " + f"{types.pkg}::{types.names(port.type)}"
     if port.kind == "event":
         classifier = ""  # an event port carries no data in AADL; kept as RAP::Field_Type
-    extra = _common(pname, pid, port.doc, port.properties)
+    extra = common(pname, pid, port.doc, port.properties)
     if port.topic is not None:
         extra.append(f"RAP::Topic => {aadl_string(port.topic)}")
     if port.kind == "event" and port.type is not None:
@@ -260,10 +101,10 @@ def _port(pid: str, pname: str, port: PortSpec, types: _Types) -> str:
     return f"    {pid}: {_DIRS[port.direction]} {kind}{classifier}{block};"
 
 
-def _process(name: str, pid: str, comp: ComponentSpec, types: _Types) -> Iterator[str]:
+def _process(name: str, pid: str, comp: ComponentSpec, types: Types) -> Iterator[str]:
     ports = Names(("RAP",))
     features = [_port(ports(p), p, spec, types) for p, spec in comp.ports.items()]
-    props = _common(name, pid, comp.doc, comp.properties)
+    props = common(name, pid, comp.doc, comp.properties)
     if comp.stage is not None:
         props.append(f"RAP::Stage => {comp.stage.value}")
     for attr, prop in (("role", "Role"), ("module", "Module"), ("config_type", "Config_Type")):
@@ -275,18 +116,22 @@ def _process(name: str, pid: str, comp: ComponentSpec, types: _Types) -> Iterato
     if comp.config:
         props.append(f"RAP::Config => {aadl_string(json.dumps(comp.config, sort_keys=True))}")
     if comp.reads:
-        props.append(f"RAP::Reads => {_strings(comp.reads)}")
+        props.append(f"RAP::Reads => {strings(comp.reads)}")
     if comp.writes:
-        props.append(f"RAP::Writes => {_strings(comp.writes)}")
+        props.append(f"RAP::Writes => {strings(comp.writes)}")
+    if any(not tr.triggers for tr in comp.mode_transitions):
+        # AADL cannot write a transition without a trigger: all of them, in order, as JSON
+        moves = [[tr.from_, tr.to, tr.triggers] for tr in comp.mode_transitions]
+        props.append(f"RAP::Mode_Transitions => {aadl_string(json.dumps(moves))}")
     if comp.dispatch is not None:
         props.append(f"RAP::Dispatch => {comp.dispatch.kind}")
         if comp.dispatch.rate_hz is not None:
-            props.append(f"RAP::Rate_Hz => {_real(comp.dispatch.rate_hz)}")
+            props.append(f"RAP::Rate_Hz => {real(comp.dispatch.rate_hz)}")
     yield f"  process {pid}"
     if features:
         yield "  features"
         yield from features
-    yield from _props(props, "  ")
+    yield from props_block(props, "  ")
     yield f"  end {pid};"
     yield ""
     yield f"  process implementation {pid}.impl"
@@ -296,11 +141,11 @@ def _process(name: str, pid: str, comp: ComponentSpec, types: _Types) -> Iterato
         yield "  subcomponents"
         for tname, thread in comp.threads.items():
             tid = threads(tname)
-            tprops = _common(tname, tid, thread.doc, thread.properties)
+            tprops = common(tname, tid, thread.doc, thread.properties)
             if thread.dispatch is not None:
                 tprops.append(f"Dispatch_Protocol => {thread.dispatch.kind.capitalize()}")
                 if thread.dispatch.rate_hz is not None:
-                    tprops.append(f"RAP::Rate_Hz => {_real(thread.dispatch.rate_hz)}")
+                    tprops.append(f"RAP::Rate_Hz => {real(thread.dispatch.rate_hz)}")
             block = " {" + " ".join(f"{p};" for p in tprops) + "}" if tprops else ""
             in_modes = (
                 " in modes (" + ", ".join(modes(m) for m in thread.in_modes) + ")"
@@ -311,28 +156,31 @@ def _process(name: str, pid: str, comp: ComponentSpec, types: _Types) -> Iterato
     if comp.modes:
         yield "  modes"
         for i, mode in enumerate(comp.modes):
-            yield f"    {modes(mode)}: {'initial ' if i == 0 else ''}mode;"
+            named = f" {{RAP::Name => {aadl_string(mode)};}}" if modes(mode) != mode else ""
+            yield f"    {modes(mode)}: {'initial ' if i == 0 else ''}mode{named};"
         for tr in comp.mode_transitions:
+            if not tr.triggers:
+                continue  # in RAP::Mode_Transitions
             trig = ", ".join(ports(t) for t in tr.triggers)
             yield f"    {modes(tr.from_)} -[{trig}]-> {modes(tr.to)};"
     yield f"  end {pid}.impl;"
     yield ""
 
 
-def _node_props(name: str, nid: str, node: ComputeNode) -> list[str]:
-    props = _common(name, nid, node.doc, node.properties)
+def _nodeprops_block(name: str, nid: str, node: ComputeNode) -> list[str]:
+    props = common(name, nid, node.doc, node.properties)
     for attr, prop in (("address", "Address"), ("architecture", "Architecture")):
         value = getattr(node, attr)
         if value is not None:
             props.append(f"RAP::{prop} => {aadl_string(value)}")
     if node.resources.cpus is not None:
-        props.append(f"RAP::CPUs => {_real(node.resources.cpus)}")
+        props.append(f"RAP::CPUs => {real(node.resources.cpus)}")
     if node.resources.memory_mb is not None:
         props.append(f"RAP::Memory_MB => {node.resources.memory_mb}")
     if node.listen:
-        props.append(f"RAP::Listen => {_strings(node.listen)}")
+        props.append(f"RAP::Listen => {strings(node.listen)}")
     if node.connect:
-        props.append(f"RAP::Connect => {_strings(node.connect)}")
+        props.append(f"RAP::Connect => {strings(node.connect)}")
     return props
 
 
@@ -346,10 +194,10 @@ class _Exported:
 
 def export_aadl(plan: DeploymentPlan) -> _Exported:
     """The AADL files of ``plan`` (see the module's docstring)."""
-    s = ident(plan.system)
+    s = Names(("RAP", "Base_Types", "Data_Model"))(plan.system)
     pkg = {k: f"{s}_{k.capitalize()}" for k in ("messages", "logical", "physical")}
-    types = _Types(pkg["messages"])
-    messages = _messages(plan, types)
+    types = Types(pkg["messages"])
+    messages = messages_section(plan, types)
     comps = Names(("Software", "Worker"))
     logical: list[str] = []
     for name, comp in plan.components.items():
@@ -371,7 +219,8 @@ def export_aadl(plan: DeploymentPlan) -> _Exported:
                     ports(p)
                 ends.append(f"{comps(cname)}.{ports(port)}")
         arrow = "<->" if c.bidirectional else "->"
-        extra = [f"RAP::Name => {aadl_string(c.name)}"] if c.name and cid != c.name else []
+        # an empty RAP::Name: the connection has no name in the model (AADL needs one)
+        extra = [f"RAP::Name => {aadl_string(c.name or '')}"] if cid != c.name else []
         block = " {" + " ".join(f"{p};" for p in extra) + "}" if extra else ""
         lines.append(f"    {cid}: port {ends[0]} {arrow} {ends[1]}{block};")
     logical += ["  system Software", "  end Software;", "", "  system implementation Software.impl"]
@@ -400,13 +249,13 @@ def export_aadl(plan: DeploymentPlan) -> _Exported:
     psubs: list[str] = []
     for name, node in plan.compute_nodes.items():
         nid = nodes(name)
-        props = _node_props(name, nid, node)
+        props = _nodeprops_block(name, nid, node)
         block = " {" + " ".join(f"{p};" for p in props) + "}" if props else ""
         psubs.append(f"    {nid}: processor {nid}_cpu{block};")
     pconns: list[str] = []
     for bname, bus in plan.buses.items():
         bid = buses(bname)
-        props = _common(bname, bid, bus.doc, {})
+        props = common(bname, bid, bus.doc, {})
         if bus.kind != "ethernet":
             props.append(f"RAP::Bus_Kind => {aadl_string(bus.kind)}")
         block = " {" + " ".join(f"{p};" for p in props) + "}" if props else ""
@@ -428,7 +277,7 @@ def export_aadl(plan: DeploymentPlan) -> _Exported:
         physical += ["  connections", *pconns]
     physical += ["  end Platform.impl;", ""]
 
-    root_props = _common(plan.system, s, plan.doc, {})
+    root_props = common(plan.system, s, plan.doc, {})
     for name, comp in plan.components.items():
         if comp.node is not None and comp.node in plan.compute_nodes:
             root_props.append(
@@ -451,10 +300,10 @@ def export_aadl(plan: DeploymentPlan) -> _Exported:
     if plan.trust.node is not None:
         root_props.append(f"RAP::Trust_Node => {aadl_string(plan.trust.node)}")
     if plan.trust.specs:
-        root_props.append(f"RAP::Trust_Specs => {_strings(plan.trust.specs)}")
+        root_props.append(f"RAP::Trust_Specs => {strings(plan.trust.specs)}")
     root_props.append(f"RAP::Fabric_Mode => {plan.fabric.mode}")
     if plan.fabric.routers:
-        root_props.append(f"RAP::Fabric_Routers => {_strings(plan.fabric.routers)}")
+        root_props.append(f"RAP::Fabric_Routers => {strings(plan.fabric.routers)}")
     root = [
         f"  system {s}",
         f"  end {s};",
@@ -463,7 +312,7 @@ def export_aadl(plan: DeploymentPlan) -> _Exported:
         "  subcomponents",
         f"    software: system {pkg['logical']}::Software.impl;",
         f"    platform: system {pkg['physical']}::Platform.impl;",
-        *_props(root_props, "  "),
+        *props_block(root_props, "  "),
         f"  end {s}.impl;",
     ]
     header = "-- Written by `rap export aadl` from the RAP system model of system {}.\n"

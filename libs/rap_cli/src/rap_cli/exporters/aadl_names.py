@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import re
 
-__all__ = ["RESERVED", "Names", "aadl_string", "ident"]
+__all__ = ["RESERVED", "Names", "aadl_string", "common", "ident", "props_block", "real", "strings"]
 
 RESERVED = frozenset(
     """
@@ -65,3 +65,35 @@ class Names:
 def aadl_string(text: str) -> str:
     """``text`` as an AADL string literal (one line; ``"`` doubled)."""
     return '"' + " ".join(text.split("\n")).replace('"', '""') + '"'
+
+
+def props_block(items: list[str], indent: str) -> list[str]:
+    """A ``properties`` section of ``items`` (nothing when there are none)."""
+    if not items:
+        return []
+    return [f"{indent}properties", *(f"{indent}  {p};" for p in items)]
+
+
+def strings(values: list[str]) -> str:
+    """An AADL list of string literals."""
+    return "(" + ", ".join(aadl_string(v) for v in values) + ")"
+
+
+def real(value: float) -> str:
+    """An AADL real literal (always with a ``.`` or an exponent)."""
+    text = repr(float(value))
+    return text if "e" in text or "." in text else f"{text}.0"
+
+
+def common(name: str, ident_: str, doc: str, properties: dict[str, str]) -> list[str]:
+    """The ``RAP::Name``, ``RAP::Doc`` and ``RAP::Design_Properties`` of a part."""
+    out = []
+    if ident_ != name:
+        out.append(f"RAP::Name => {aadl_string(name)}")
+    if doc:
+        out.append(f"RAP::Doc => {aadl_string(doc)}")
+    if properties:
+        out.append(
+            f"RAP::Design_Properties => {strings([f'{k} => {v}' for k, v in properties.items()])}"
+        )
+    return out

@@ -18,6 +18,10 @@ Model connections are named after the declared connections they cross, joined wi
 the managing system); unnamed ones are left out of the name, and a connection crossing
 only unnamed ones has none.
 
+A design that uses RAP's property set (``rap export aadl`` writes one) is read with it:
+see :mod:`.aadl_rap` (names, stages, wire types, knowledge, trust and fabric from
+``RAP::`` properties; in such a design every declared connection, in declaration order).
+
 What the model's own checks find (an unbound component, an input nobody produces, a type
 mismatch...) is left to them: ``where`` locates every component, port, thread, mode
 transition, message, field, compute node, bus and connection in the design.
@@ -29,7 +33,7 @@ import re
 from collections.abc import Sequence
 from pathlib import Path
 
-from rap_schemas.plan import ConnectionSpec, DeploymentPlan
+from rap_schemas.plan import ConnectionSpec, DeploymentPlan, FabricSpec, TrustSpec
 
 from ..aadl import parse_aadl_files
 from ..aadl import syntax as s
@@ -41,6 +45,7 @@ from .aadl_deploy import Deployment
 from .aadl_index import Classifier, Index
 from .aadl_instance import build_tree
 from .aadl_messages import Messages
+from .aadl_rap import is_rap_design, knowledge, rap_string, trust_and_fabric
 from .aadl_units import check_units
 from .aadl_wiring import Wiring
 
@@ -65,20 +70,60 @@ def import_aadl(paths: Sequence[Path], *, root: str | None = None) -> Imported:
     if chosen is None:
         return Imported(None, sort_diagnostics(diagnostics), sources=sources, readable=False)
     tree = build_tree(index, chosen, diagnostics)
+    rap = is_rap_design(tree.own)
     wiring = Wiring(index, tree, diagnostics)
-    deployment = Deployment(index, tree, wiring, diagnostics)
-    messages = Messages(index, diagnostics)
-    components = Components(index, tree, wiring, deployment, messages)
+    deployment = Deployment(index, tree, wiring, diagnostics, rap=rap)
+    messages = Messages(index, diagnostics, rap=rap)
+    components = Components(index, tree, wiring, deployment, messages, rap=rap)
+    if rap:
+        messages.every_message()
     where: dict[tuple[object, ...], Loc] = {}
+    connections = _connections(wiring, components, deployment, where, rap=rap)
+    where[()] = chosen.decl.loc
+    where.update(deployment.where)
+    where.update(messages.where)
+    where.update(components.where)
+    system = (rap_string(tree.own, "Name") if rap else None) or chosen.type_name
+    trust, fabric = trust_and_fabric(tree.own)
+    plan = DeploymentPlan(
+        system=_INVALID.sub("_", system) or "system",
+        compute_nodes=deployment.nodes,
+        knowledge=(knowledge(tree.own) if rap else None) or deployment.knowledge,
+        components=components.specs,
+        messages=dict(sorted(messages.specs.items())),
+        connections=connections,
+        buses=deployment.buses,
+        trust=trust if rap else TrustSpec(),
+        fabric=fabric if rap else FabricSpec(),
+        doc=rap_string(tree.own, "Doc")
+        or ("" if rap else f"imported from AADL {chosen.qualified}"),
+    )
+    return Imported(plan, sort_diagnostics(_unique(diagnostics)), where, sources)
+
+
+def _connections(
+    wiring: Wiring,
+    components: Components,
+    deployment: Deployment,
+    where: dict[tuple[object, ...], Loc],
+    *,
+    rap: bool,
+) -> list[ConnectionSpec]:
+    """The model's connections: the flattened ones between components (see the module's
+    docstring; in a RAP design, every declared one in declaration order)."""
     connections: list[ConnectionSpec] = []
     names: set[str] = set()
-    for flow in wiring.flows():
+    flows = wiring.flows(every=rap)
+    if rap:
+        order = {id(c): i for i, c in enumerate(wiring.declared())}
+        flows.sort(key=lambda f: [order.get(id(h.conn), 0) for h in f.hops])
+    for flow in flows:
         src = components.name_of.get(id(flow.src))
         dst = components.name_of.get(id(flow.dst))
         if src is None or dst is None:
             continue  # a device without known ports: platform hardware, not a component
-        named = [h.conn.name for h in flow.hops if h.conn.name]
-        name = "/".join(named) or None
+        named = [_conn_name(h.conn) for h in flow.hops]
+        name = "/".join(n for n in named if n) or None
         if name is not None:
             base, n = name, 2
             while name in names:
@@ -89,31 +134,25 @@ def import_aadl(paths: Sequence[Path], *, root: str | None = None) -> Imported:
             for h in flow.hops
         )
         where[("connections", len(connections))] = flow.hops[0].conn.loc
+        src_port = components.port_name(flow.src, flow.src_port)
+        dst_port = components.port_name(flow.dst, flow.dst_port)
         connections.append(
             ConnectionSpec(
-                from_=f"{src}.{flow.src_port}",
-                to=f"{dst}.{flow.dst_port}",
+                from_=f"{src}.{src_port}",
+                to=f"{dst}.{dst_port}",
                 name=name,
                 bus=deployment.bus_for(flow),
                 bidirectional=flow.bidirectional,
                 origin=f"aadl connection {origin}",
             )
         )
-    where[()] = chosen.decl.loc
-    where.update(deployment.where)
-    where.update(messages.where)
-    where.update(components.where)
-    plan = DeploymentPlan(
-        system=_INVALID.sub("_", chosen.type_name) or "system",
-        compute_nodes=deployment.nodes,
-        knowledge=deployment.knowledge,
-        components=components.specs,
-        messages=dict(sorted(messages.specs.items())),
-        connections=connections,
-        buses=deployment.buses,
-        doc=f"imported from AADL {chosen.qualified}",
-    )
-    return Imported(plan, sort_diagnostics(_unique(diagnostics)), where, sources)
+    return connections
+
+
+def _conn_name(conn: s.Connection) -> str | None:
+    """A declared connection's name: its ``RAP::Name`` (empty: none), or as declared."""
+    named = rap_string(conn.properties, "Name")
+    return conn.name if named is None else named or None
 
 
 def _systems(index: Index) -> list[Classifier]:

@@ -1,7 +1,10 @@
 """Process and device instances to the components of RAP's model.
 
-- Name: the subcomponent's name when no other process or device has it (compared without
-  case), else its dotted instance path from the root (``managing.m``).
+- Name: its ``RAP::Name``; else the subcomponent's name when no other process or device
+  has it (compared without case), else its dotted instance path from the root
+  (``managing.m``). A component with ``RAP::`` properties (or in a RAP design) takes
+  stage, role, module and the rest from them, nothing from its name
+  (:mod:`.aadl_rap`); ports, threads and modes take their ``RAP::Name`` too.
 - Stage: from the subcomponent's name or its type's, when obvious: ``monitor``,
   ``analysis``/``analyse``/``analyze``, ``plan``, ``legitimate``, ``execute``, or the
   RoboSAPIENS one-letter ``m a p l e`` (the subcomponent's name only); ``knowledge`` or
@@ -35,8 +38,9 @@ from ..aadl.syntax import norm
 from ..diagnostics import Loc
 from .aadl_deploy import Deployment
 from .aadl_index import Index, find_property, is_container
-from .aadl_instance import Instance, value_text
+from .aadl_instance import Instance
 from .aadl_messages import Messages
+from .aadl_rap import is_rap, rap_component, rap_rate, rap_string, texts
 from .aadl_wiring import LEAVES, Wiring
 
 __all__ = ["Components"]
@@ -61,7 +65,7 @@ _DIRECTIONS = {"in": "in", "out": "out", "in out": "in-out"}
 _KINDS = {"event port": "event", "data port": "data", "event data port": "event-data"}
 _SECONDS = {"ps": 1e-12, "ns": 1e-9, "us": 1e-6, "ms": 1e-3, "sec": 1.0, "min": 60.0, "hr": 3600.0}
 _HERTZ = {"hz": 1.0, "khz": 1e3, "mhz": 1e6, "ghz": 1e9}
-_CONSUMED = {"actual_processor_binding", "dispatch_protocol", "period"}
+_CONSUMED = frozenset({"actual_processor_binding", "dispatch_protocol", "period"})
 _TOPICS = ("Port_MQTT_Topic", "Topic")
 
 
@@ -74,16 +78,21 @@ class Components:
     wiring: Wiring
     deployment: Deployment
     messages: Messages
+    rap: bool = False
+    """A RAP design (:mod:`.aadl_rap`): nothing is inferred from names."""
     specs: dict[str, ComponentSpec] = field(default_factory=dict)
     where: dict[tuple[object, ...], Loc] = field(default_factory=dict)
     name_of: dict[int, str] = field(default_factory=dict)
     _boundary: dict[tuple[int, str], list[s.PropertyAssociation]] = field(default_factory=dict)
+    _ports_of: dict[tuple[int, str], str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         leaves = [i for i in self.root.walk() if _is_component(i)]
         counts = Counter(norm(i.name) for i in leaves)
         for inst in leaves:
-            self.name_of[id(inst)] = inst.name if counts[norm(inst.name)] == 1 else inst.dotted
+            named = rap_string(inst.properties(), "Name")
+            unique = inst.name if counts[norm(inst.name)] == 1 else inst.dotted
+            self.name_of[id(inst)] = named if named is not None else unique
         self._collect_boundary()
         for inst in leaves:
             name = self.name_of[id(inst)]
@@ -104,16 +113,35 @@ class Components:
 
     # -- one component
 
+    def port_name(self, inst: Instance, feature: str) -> str:
+        """The model's name of port ``feature`` of component ``inst``."""
+        return self._ports_of.get((id(inst), norm(feature)), feature)
+
     def _component(self, inst: Instance, name: str) -> ComponentSpec:
+        props = inst.properties()
         ports = self._ports(inst, name)
-        threads = self._threads(inst, name)
-        modes, transitions = self._modes(inst, name)
-        dispatch = _dispatch(inst.properties())
+        modes, transitions, mode_names = self._modes(inst, name)
+        threads = self._threads(inst, name, mode_names)
+        device = inst.category == "device"
+        origin = f"aadl {inst.category} {inst.classifier_text} at {inst.dotted}"
+        if self.rap or any(is_rap(a) for a in props):
+            return rap_component(
+                props,
+                node=self.deployment.node_for(inst),
+                ports=ports,
+                threads=threads,
+                modes=modes,
+                mode_transitions=transitions,
+                origin=origin,
+                device=device,
+                dispatch=_dispatch(props),
+                properties=texts(props, skip=_CONSUMED),
+            )
+        dispatch = _dispatch(props)
         if dispatch is None:
             dispatch = _agree([t.dispatch for t in threads.values() if t.dispatch])
         if dispatch is None:
             dispatch = self._port_dispatch(inst)
-        device = inst.category == "device"
         return ComponentSpec(
             stage=None if device else _stage(inst),
             role="device" if device else _role(inst),
@@ -124,8 +152,8 @@ class Components:
             threads=threads,
             modes=modes,
             mode_transitions=transitions,
-            origin=f"aadl {inst.category} {inst.classifier_text} at {inst.dotted}",
-            properties=_texts(inst.properties()),
+            origin=origin,
+            properties=texts(props, skip=_CONSUMED),
         )
 
     def _port_props(self, inst: Instance, port: str) -> list[s.PropertyAssociation]:
@@ -143,17 +171,21 @@ class Components:
                 resolved = self.index.resolve(feature.classifier, ctype.package, feature.loc)
             props = self._port_props(inst, feature.name)
             topic = find_property(props, *_TOPICS)
-            out[feature.name] = PortSpec(
+            pname = rap_string(props, "Name") or feature.name
+            self._ports_of[(id(inst), norm(feature.name))] = pname
+            ptype = rap_string(props, "Field_Type")
+            out[pname] = PortSpec(
                 direction=_DIRECTIONS[feature.direction],  # type: ignore[arg-type]
                 kind=kind,  # type: ignore[arg-type]
-                type=self.messages.port_type(resolved, feature.loc),
+                type=ptype or self.messages.port_type(resolved, feature.loc),
                 topic=topic.value.value
                 if topic and isinstance(topic.value, s.StringValue)
                 else None,
                 origin=f"aadl {feature.direction} {feature.kind} {feature.name}",
-                properties=_texts(props, keep_all=True),
+                properties=texts(props),
+                doc=rap_string(props, "Doc") or "",
             )
-            self.where[("components", cname, "ports", feature.name)] = feature.loc
+            self.where[("components", cname, "ports", pname)] = feature.loc
         return out
 
     def _port_dispatch(self, inst: Instance) -> Dispatch | None:
@@ -174,26 +206,36 @@ class Components:
             return Dispatch(kind="periodic", rate_hz=max(rates) if rates else None)
         return found[0] if found else None
 
-    def _threads(self, inst: Instance, cname: str) -> dict[str, ThreadSpec]:
+    def _threads(
+        self, inst: Instance, cname: str, mode_names: dict[str, str]
+    ) -> dict[str, ThreadSpec]:
         out: dict[str, ThreadSpec] = {}
         for thread in inst.walk()[1:]:
             if thread.category != "thread":
                 continue
-            tname = ".".join(thread.path[len(inst.path) :])
+            props = thread.properties()
+            tname = rap_string(props, "Name") or ".".join(thread.path[len(inst.path) :])
+            in_modes = list(thread.sub.in_modes) if thread.sub else []
             out[tname] = ThreadSpec(
-                dispatch=_dispatch(thread.properties()),
-                in_modes=list(thread.sub.in_modes) if thread.sub else [],
+                dispatch=rap_rate(_dispatch(props), props),
+                in_modes=[mode_names.get(norm(m), m) for m in in_modes],
                 origin=f"aadl thread {thread.classifier_text} at {thread.dotted}",
-                properties=_texts(thread.properties()),
+                properties=texts(props, skip=_CONSUMED),
+                doc=rap_string(props, "Doc") or "",
             )
             self.where[("components", cname, "threads", tname)] = thread.loc
         return out
 
-    def _modes(self, inst: Instance, cname: str) -> tuple[list[str], list[ModeTransitionSpec]]:
+    def _modes(
+        self, inst: Instance, cname: str
+    ) -> tuple[list[str], list[ModeTransitionSpec], dict[str, str]]:
+        """The modes (initial first), the transitions, and mode identifier -> name."""
         if inst.classifier is None:
-            return [], []
+            return [], [], {}
         modes, transitions = self.index.modes(inst.classifier)
-        names = [m.name for m in modes if m.initial] + [m.name for m in modes if not m.initial]
+        called = {norm(m.name): rap_string(m.properties, "Name") or m.name for m in modes}
+        ordered = [m for m in modes if m.initial] + [m for m in modes if not m.initial]
+        names = [called[norm(m.name)] for m in ordered]
         if names:
             self.where[("components", cname, "modes")] = modes[0].loc
         out: list[ModeTransitionSpec] = []
@@ -203,9 +245,9 @@ class Components:
             inner: list[str] = []
             for trig in tr.triggers:
                 if norm(trig) in inst.features:
-                    triggers.append(inst.features[norm(trig)].name)
+                    triggers.append(self.port_name(inst, trig))
                 elif norm(trig) in links:
-                    triggers.append(links[norm(trig)])
+                    triggers.append(self.port_name(inst, links[norm(trig)]))
                 else:
                     inner.append(trig)
             written = f"{', '.join(tr.sources)} -[{', '.join(tr.triggers)}]-> {tr.destination}"
@@ -216,10 +258,13 @@ class Components:
                 self.where[("components", cname, "mode_transitions", len(out))] = tr.loc
                 out.append(
                     ModeTransitionSpec(
-                        from_=src, to=tr.destination, triggers=triggers, origin=origin
+                        from_=called.get(norm(src), src),
+                        to=called.get(norm(tr.destination), tr.destination),
+                        triggers=triggers,
+                        origin=origin,
                     )
                 )
-        return names, out
+        return names, out, called
 
     def _internal_links(self, inst: Instance) -> dict[str, str]:
         """Thread port path -> the process port it is connected to inside the process."""
@@ -264,14 +309,6 @@ def _role(inst: Instance) -> str | None:
             return "managed"
         here = here.parent
     return None
-
-
-def _texts(props: list[s.PropertyAssociation], *, keep_all: bool = False) -> dict[str, str]:
-    return {
-        a.name: value_text(a.value)
-        for a in props
-        if keep_all or norm(a.simple_name) not in _CONSUMED
-    }
 
 
 def _seconds(value: s.PropertyValue) -> float | None:

@@ -2,10 +2,12 @@
 knowledge backend.
 
 - Compute nodes are the processor and virtual processor instances, named by their dotted
-  instance path from the root (``platform.controller.MissionProcessor1``). One exception
-  keeps a machine's name: a system that carries a network address and holds exactly one
-  processor is that machine, and the node takes the system's path (``companion`` for
-  ``companion.cpu`` when ``companion`` has ``mbed::IP_Address``).
+  instance path from the root (``platform.controller.MissionProcessor1``); by their
+  ``RAP::Name``, or in a RAP design their subcomponent's name (:mod:`.aadl_rap`), when
+  they have one. One exception keeps a machine's name: a system that carries a network
+  address and holds exactly one processor is that machine, and the node takes the
+  system's path (``companion`` for ``companion.cpu`` when ``companion`` has
+  ``mbed::IP_Address``).
 - The address is the nearest ``IP_Address``, ``Deployment::location``, ``Address`` or
   ``Host`` string on the processor or a system above it.
 - ``Actual_Processor_Binding`` in any implementation on the path (``applies to`` paths and
@@ -13,8 +15,10 @@ knowledge backend.
   one holding it) binds a component, or a system and so all it holds; the outermost
   association wins, as in AADL. A binding to a system that holds exactly one processor
   binds to that processor.
-- Buses are the bus and virtual bus instances; their nodes are the processors that reach
-  them through bus access connections, directly or through a device bound to them.
+- Buses are the bus and virtual bus instances, named as nodes are; their nodes are the
+  processors that reach them through bus access connections, directly or through a
+  device bound to them. A bus's kind is its ``RAP::Bus_Kind``, else its type's name
+  (``ethernet`` in a RAP design).
 - A system with RPIO backend properties (``rpio::Redis_port``, ``Redis_Database``) is the
   knowledge backend: ``knowledge: {backend: redis, url: redis://<address>:<port>/<db>,
   node: <its binding>}``; its other properties go to that node's ``properties``.
@@ -22,15 +26,18 @@ knowledge backend.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-from rap_schemas.plan import BusSpec, ComputeNode, KnowledgeSpec
+import msgspec
+from rap_schemas.plan import BusSpec, ComputeNode, KnowledgeSpec, Resources
 
 from ..aadl import syntax as s
 from ..aadl.syntax import norm
 from ..diagnostics import Diagnostic, Loc
 from .aadl_index import Index, diagnostic, find_property
 from .aadl_instance import Instance, value_text
+from .aadl_rap import rap_number, rap_string, rap_strings, texts
 from .aadl_wiring import Flow, Wiring
 
 __all__ = ["Deployment"]
@@ -50,6 +57,8 @@ class Deployment:
     root: Instance
     wiring: Wiring
     diagnostics: list[Diagnostic]
+    rap: bool = False
+    """A RAP design (:mod:`.aadl_rap`): nodes and buses are named by their subcomponent."""
     nodes: dict[str, ComputeNode] = field(default_factory=dict)
     buses: dict[str, BusSpec] = field(default_factory=dict)
     knowledge: KnowledgeSpec = field(default_factory=KnowledgeSpec)
@@ -78,18 +87,41 @@ class Deployment:
             if proc.category not in _PROCESSORS:
                 continue
             machine = machines.get(id(proc))
-            name = (machine or proc).dotted
-            props = {a.name: value_text(a.value) for a in proc.properties()}
+            name = self._name(proc, (machine or proc).dotted, self.nodes)
+            own = proc.properties()
+            props = texts(own)
             origin = f"aadl {proc.category} {proc.dotted} ({proc.classifier_text})"
             if machine is not None:
-                props.update({a.name: value_text(a.value) for a in machine.properties()})
+                props.update(texts(machine.properties()))
                 origin += f" in system {machine.dotted} ({machine.classifier_text})"
             address = _address(proc)
             for key in [k for k in props if _is_address(k)]:
                 del props[key]
-            self.nodes[name] = ComputeNode(address=address, origin=origin, properties=props)
+            memory = rap_number(own, "Memory_MB")
+            self.nodes[name] = ComputeNode(
+                address=address,
+                architecture=rap_string(own, "Architecture"),
+                resources=Resources(
+                    cpus=rap_number(own, "CPUs"), memory_mb=int(memory) if memory else None
+                ),
+                listen=rap_strings(own, "Listen") or [],
+                connect=rap_strings(own, "Connect") or [],
+                origin=origin,
+                properties=props,
+                doc=rap_string(own, "Doc") or "",
+            )
             self.where[("compute_nodes", name)] = (machine or proc).loc
             self.node_of[id(proc)] = name
+
+    def _name(self, inst: Instance, dotted: str, taken: Mapping[str, object]) -> str:
+        """A node's or bus's name: its ``RAP::Name``; in a RAP design its subcomponent's
+        name when free; else its dotted path (see the module's docstring)."""
+        named = rap_string(inst.properties(), "Name")
+        if named is not None:
+            return named
+        if self.rap and inst.name not in taken:
+            return inst.name
+        return dotted
 
     # -- bindings
 
@@ -191,10 +223,14 @@ class Deployment:
             kind = bus.classifier.type_name if bus.classifier is not None else "bus"
             if bus.classifier is None and bus.sub is not None and bus.sub.classifier:
                 kind = bus.sub.classifier.rpartition("::")[2].partition(".")[0]
+            props = bus.properties()
+            kind = rap_string(props, "Bus_Kind") or ("ethernet" if self.rap else kind)
             origin = f"aadl {bus.category} {bus.dotted} ({bus.classifier_text})"
-            self.buses[bus.dotted] = BusSpec(kind=kind, nodes=nodes, origin=origin)
-            self.where[("buses", bus.dotted)] = bus.loc
-            self.bus_of[id(bus)] = bus.dotted
+            name = self._name(bus, bus.dotted, self.buses)
+            doc = rap_string(props, "Doc") or ""
+            self.buses[name] = BusSpec(kind=kind, nodes=nodes, origin=origin, doc=doc)
+            self.where[("buses", name)] = bus.loc
+            self.bus_of[id(bus)] = name
 
     def bus_for(self, flow: Flow) -> str | None:
         """The bus a flattened connection is bound to (its first bound hop's)."""
@@ -238,9 +274,8 @@ class Deployment:
                     if not _is_binding(a)
                 }
                 merged = {**spec.properties, **extra}
-                self.nodes[node] = ComputeNode(
-                    address=spec.address,
-                    origin=spec.origin,
+                self.nodes[node] = msgspec.structs.replace(
+                    spec,
                     properties=merged,
                     doc=f"runs the knowledge backend {inst.dotted} ({inst.classifier_text})",
                 )

@@ -17,10 +17,16 @@ What a data classifier becomes (``Data_Model::Data_Representation``, or what it 
 
 A port must carry a message: a port typed by an array or a scalar carries a *wrapper*
 message named after the data classifier (``FloatArray``, ``Float_64``) with one field
-``value`` of that type. Message names are the classifier's type name (``shipPose``, ``T``
-of ``T.impl``); when two different classifiers would share a name (compared without
-case), the later ones take their qualified name with ``.`` for ``::`` (``pkg.T``, then
-``pkg.T.impl``), which is a valid model name and field type.
+``value`` of that type.
+
+A data type with ``RAP::Wire_Type`` is that RAP wire type (no message); ``RAP::Name``,
+``RAP::Field_Type`` and ``RAP::Constraints`` name a message or field, override a
+field's type and give its constraints (:mod:`.aadl_rap`).
+
+Message names are the classifier's type name (``shipPose``, ``T`` of ``T.impl``); when
+two different classifiers would share a name (compared without case), the later ones
+take their qualified name with ``.`` for ``::`` (``pkg.T``, then ``pkg.T.impl``), which
+is a valid model name and field type.
 """
 
 from __future__ import annotations
@@ -33,6 +39,7 @@ from ..aadl import syntax as s
 from ..aadl.syntax import norm
 from ..diagnostics import Diagnostic, Loc
 from .aadl_index import BaseType, Classifier, Index, Opaque, Resolved, diagnostic, find_property
+from .aadl_rap import constraints, rap_string
 
 __all__ = ["Messages"]
 
@@ -55,6 +62,8 @@ class Messages:
 
     index: Index
     diagnostics: list[Diagnostic]
+    rap: bool = False
+    """A RAP design (:mod:`.aadl_rap`): every message is imported, docs are its own."""
     specs: dict[str, MessageSpec] = field(default_factory=dict)
     where: dict[tuple[object, ...], Loc] = field(default_factory=dict)
     _names: dict[Key, str] = field(default_factory=dict)
@@ -78,6 +87,9 @@ class Messages:
             )
         if isinstance(resolved, Opaque):
             return self._opaque(resolved, loc)
+        wire = rap_string(self._props(resolved), "Wire_Type")
+        if wire:
+            return wire
         inline = self._inline(resolved, 0)
         if inline is None:
             return self.message(resolved, 0)
@@ -98,11 +110,27 @@ class Messages:
 
     # -- naming
 
-    def _name(self, key: Key, short: str, qualified: str) -> str:
-        """The message name of ``key`` (see the module's docstring)."""
+    def every_message(self) -> None:
+        """Import every struct and enumeration data classifier of the design, used by a
+        port or not (a RAP design's messages)."""
+        for package in self.index.packages.values():
+            for decl in package.declarations:
+                c = Classifier(package, decl)
+                if decl.category != "data" or rap_string(self._props(c), "Wire_Type"):
+                    continue
+                if self._representation(c) in ("struct", "enum"):
+                    self.message(c, 0)
+
+    def _name(self, key: Key, short: str, qualified: str, named: str | None = None) -> str:
+        """The message name of ``key`` (see the module's docstring); ``named`` (its
+        ``RAP::Name``) wins."""
         found = self._names.get(key)
         if found is not None:
             return found
+        if named is not None:
+            self._taken[norm(named)] = key
+            self._names[key] = named
+            return named
         for candidate in (short, qualified.replace("::", "."), f"{qualified.replace('::', '.')}_"):
             if norm(candidate) not in self._taken:
                 self._taken[norm(candidate)] = key
@@ -230,15 +258,17 @@ class Messages:
     def message(self, c: Classifier, depth: int) -> str:
         """The message (or enumeration) classifier ``c`` becomes."""
         c = self.canonical(c)
-        name = self._name(_key(c), c.type_name, c.qualified)
+        named = rap_string(self._props(c), "Name")
+        name = self._name(_key(c), c.type_name, c.qualified, named)
         if name in self.specs:
             return name
+        own_doc = rap_string(self._props(c), "Doc")
         origin = f"aadl data {c.qualified}"
         self.specs[name] = MessageSpec(origin=origin)  # placeholder against recursion
         self.where[("messages", name)] = c.decl.loc
         rep = self._representation(c)
         if rep == "enum":
-            self.specs[name] = self._enum(c, origin)
+            self.specs[name] = self._enum(c, origin, own_doc or "")
             return name
         fields = self._fields(c, name, depth, optional=rep == "union")
         doc = ""
@@ -248,10 +278,12 @@ class Messages:
             doc = f"opaque: {c.qualified} gives no fields nor Data_Model representation"
             if rep not in (None, "struct"):
                 doc = f"{c.qualified}: Data_Representation {rep} has no RAP equivalent"
+        if own_doc is not None or self.rap:
+            doc = own_doc or ""
         self.specs[name] = MessageSpec(fields=fields, origin=origin, doc=doc)
         return name
 
-    def _enum(self, c: Classifier, origin: str) -> MessageSpec:
+    def _enum(self, c: Classifier, origin: str, doc: str) -> MessageSpec:
         found = find_property(self._props(c), "Data_Model::Enumerators")
         literals: list[str] = []
         if found is not None:
@@ -268,13 +300,14 @@ class Messages:
                 f"the enumeration {c.qualified} lists no "
                 'Data_Model::Enumerators - add Enumerators => ("a", "b")',
             )
-        return MessageSpec(enum=literals, origin=origin)
+        return MessageSpec(enum=literals, origin=origin, doc=doc)
 
     def _fields(
         self, c: Classifier, name: str, depth: int, *, optional: bool
     ) -> dict[str, FieldSpec]:
         out: dict[str, FieldSpec] = {}
         entries: list[tuple[str, Resolved, Loc]] = []
+        own: dict[str, tuple[s.PropertyAssociation, ...]] = {}
         subs = self.index.subcomponents(c)
         if subs:
             for sub, package in subs:
@@ -284,6 +317,7 @@ class Messages:
                     else None
                 )
                 entries.append((sub.name, resolved, sub.loc))
+                own[sub.name] = sub.properties
         elif (names := find_property(self._props(c), "Data_Model::Element_Names")) is not None:
             entries = self._elements(c, names)
         else:
@@ -295,9 +329,18 @@ class Messages:
                 resolved = self.index.resolve(feature.classifier, package, feature.loc)
                 entries.append((feature.name, resolved, feature.loc))
         for fname, resolved, loc in entries:
-            ftype = self.field_type(resolved, loc, depth + 1) if depth < _MAX_NESTING else "bytes"
-            out[fname] = FieldSpec(type=f"optional[{ftype}]" if optional else ftype)
-            self.where[("messages", name, "fields", fname)] = loc
+            props = own.get(fname, ())
+            ftype = rap_string(props, "Field_Type")
+            if ftype is None:
+                ftype = (
+                    self.field_type(resolved, loc, depth + 1) if depth < _MAX_NESTING else "bytes"
+                )
+                ftype = f"optional[{ftype}]" if optional else ftype
+            called = rap_string(props, "Name") or fname
+            out[called] = FieldSpec(
+                type=ftype, doc=rap_string(props, "Doc") or "", **constraints(props)
+            )
+            self.where[("messages", name, "fields", called)] = loc
         return out
 
     def _elements(

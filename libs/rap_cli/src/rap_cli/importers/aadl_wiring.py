@@ -237,10 +237,12 @@ class Wiring:
 
     # -- flattening
 
-    def flows(self) -> list[Flow]:
-        """Every semantic connection between processes and devices, in tree order."""
+    def flows(self, *, every: bool = False) -> list[Flow]:
+        """Every semantic connection between processes and devices, in tree order: one
+        per pair of ports, or with ``every`` one per path of declared connections (a
+        port connected to itself included)."""
         out: list[Flow] = []
-        seen: set[tuple[EndKey, EndKey]] = set()
+        seen: set[tuple[object, ...]] = set()
         for inst in self.root.walk():
             if inst.category not in LEAVES:
                 continue
@@ -250,16 +252,22 @@ class Wiring:
                 start = (id(inst), norm(feature.name))
                 if start not in self.forward:
                     continue
-                for end, hops in self._trace(start, [], {start}):
-                    pair = (start, end)
+                visited = set() if every else {start}
+                for end, hops in self._trace(start, [], visited):
+                    via = tuple(id(h.conn) for h in hops) if every else ()
+                    pair = (start, end, *via)
                     bidirectional = any(h.conn.bidirectional for h in hops)
-                    if pair in seen or (bidirectional and (end, start) in seen):
+                    if pair in seen or (bidirectional and (end, start, *via[::-1]) in seen):
                         continue
                     seen.add(pair)
                     dst, dst_port = self.ends[end]
                     assert dst_port is not None
                     out.append(Flow(inst, feature.name, dst, dst_port, hops))
         return out
+
+    def declared(self) -> list[s.Connection]:
+        """The declared connections of the tree, in tree and declaration order."""
+        return [hop.conn for _, _, hop in self.hops]
 
     def _trace(
         self, here: EndKey, hops: list[Hop], visited: set[EndKey]
