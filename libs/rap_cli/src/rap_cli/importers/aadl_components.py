@@ -37,6 +37,7 @@ from ..aadl import syntax as s
 from ..aadl.syntax import norm
 from ..diagnostics import Loc
 from .aadl_deploy import Deployment
+from .aadl_il_names import STAGE_WORDS
 from .aadl_index import Index, find_property, is_container
 from .aadl_instance import Instance
 from .aadl_messages import Messages
@@ -45,15 +46,6 @@ from .aadl_wiring import LEAVES, Wiring
 
 __all__ = ["Components"]
 
-_STAGE_WORDS = {
-    "monitor": Stage.MONITOR,
-    "analysis": Stage.ANALYSE,
-    "analyse": Stage.ANALYSE,
-    "analyze": Stage.ANALYSE,
-    "plan": Stage.PLAN,
-    "legitimate": Stage.LEGITIMATE,
-    "execute": Stage.EXECUTE,
-}
 _STAGE_LETTERS = {
     "m": Stage.MONITOR,
     "a": Stage.ANALYSE,
@@ -289,10 +281,10 @@ def _is_component(inst: Instance) -> bool:
 
 def _stage(inst: Instance) -> Stage | None:
     name = norm(inst.name)
-    if name in _STAGE_WORDS:
-        return _STAGE_WORDS[name]
-    if inst.classifier is not None and norm(inst.classifier.type_name) in _STAGE_WORDS:
-        return _STAGE_WORDS[norm(inst.classifier.type_name)]
+    if name in STAGE_WORDS:
+        return STAGE_WORDS[name]
+    if inst.classifier is not None and norm(inst.classifier.type_name) in STAGE_WORDS:
+        return STAGE_WORDS[norm(inst.classifier.type_name)]
     return _STAGE_LETTERS.get(name)
 
 

@@ -12,7 +12,7 @@ from typing import Any
 
 from rap_schemas.maplek import Stage
 
-__all__ = ["DATA_TYPES", "clean_name", "description", "stage_or_role"]
+__all__ = ["DATA_TYPES", "STAGE_WORDS", "clean_name", "description", "stage_or_role"]
 
 DATA_TYPES = {
     "Boolean": "bool",
@@ -35,7 +35,8 @@ DATA_TYPES = {
 """AADL-IL ``_dataType`` (AADL Base_Types) -> a field type of the model."""
 
 _NOT_NAME = re.compile(r"[^A-Za-z0-9_.\-~+:@=%,]+")
-_STAGES = {
+STAGE_WORDS = {
+    # the words a component name says its MAPLE-K stage with (every importer)
     "monitor": Stage.MONITOR,
     "analyse": Stage.ANALYSE,
     "analysis": Stage.ANALYSE,
@@ -54,8 +55,8 @@ def stage_or_role(name: str) -> tuple[Stage | None, str | None]:
     ``Adaptation_Plan``: the whole name or its last ``_`` part), or role ``knowledge``
     for a knowledge component; ``(None, None)`` for any other name."""
     for word in (name.lower(), name.rsplit("_", 1)[-1].lower()):
-        if word in _STAGES:
-            return _STAGES[word], None
+        if word in STAGE_WORDS:
+            return STAGE_WORDS[word], None
         if word == "knowledge":
             return None, "knowledge"
     return None, None
