@@ -115,10 +115,10 @@ async def _serve(config: KnowledgeConfig, zconf: ZenohConfig) -> None:
         ):
             await tg.start(PeerWatch(fabric=fabric, system=config.system, mine={"knowledge"}).run)
             log.info(
-                "ready: system %r, %s backend, listening on %s",
+                "ready: system %r, %s backend, %s",
                 config.system,
                 config.backend,
-                ", ".join(fabric.endpoints),
+                fabric.reach,
             )
             print("READY", flush=True)
             async for _ in signals:

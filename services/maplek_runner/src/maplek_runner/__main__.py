@@ -93,7 +93,7 @@ async def _serve(share: NodeShare, zconf: ZenohConfig, system: str | None) -> No
                 await share_tg.start(
                     partial(run_share, share, fabric=fabric, system=system, stop=stop, gc_idle=True)
                 )
-                log.info("ready: listening on %s", ", ".join(fabric.endpoints))
+                log.info("ready: %s", fabric.reach)
                 async for signum in signals:
                     log.info("received %s; stopping", signal.Signals(signum).name)
                     stop.set()

@@ -15,9 +15,10 @@ from ._types import (
     Token,
 )
 from .memory import MemoryBus, MemoryFabric
-from .zenoh_fabric import ZenohConfig, ZenohFabric, free_port
+from .zenoh_fabric import CONFIG_ENV, ZenohConfig, ZenohFabric, free_port, node_overlay
 
 __all__ = [
+    "CONFIG_ENV",
     "Fabric",
     "FabricStats",
     "LivelinessChange",
@@ -35,4 +36,5 @@ __all__ = [
     "ZenohConfig",
     "ZenohFabric",
     "free_port",
+    "node_overlay",
 ]

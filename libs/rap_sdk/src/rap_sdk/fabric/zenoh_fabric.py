@@ -60,9 +60,15 @@ from ._types import (
 )
 from .handoff import LoopHandoff
 
-__all__ = ["ZenohConfig", "ZenohFabric"]
+__all__ = ["CONFIG_ENV", "ZenohConfig", "ZenohFabric", "node_overlay"]
 
 RUNTIME_ENV = "ZENOH_RUNTIME"
+CONFIG_ENV = "RAP_ZENOH_CONFIG"
+"""A Zenoh config file (JSON with whole-line ``//`` comments) laid over every session this
+process opens: ``mode``, ``listen`` and ``connect`` replace the session's own, other
+top-level keys are merged into :attr:`ZenohConfig.extra`. ``rap up`` and the generated
+compose files point it at the compute node's client config, so that every process of a
+node reaches the others through the node's Zenoh router."""
 
 log = logging.getLogger(__name__)
 
@@ -120,8 +126,48 @@ class ZenohConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_on
             "scouting": {"multicast": {"enabled": self.multicast_scouting}},
             "transport": {"link": {"tx": {"lease": self.lease_ms, "keep_alive": 4}}},
         }
-        conf.update(self.extra)
+        for key, value in self.extra.items():
+            if key in ("listen", "connect") and isinstance(value, dict):
+                conf[key] = {**conf[key], **value}
+            else:
+                conf[key] = value
         return json.dumps(conf)
+
+
+def node_overlay(config: ZenohConfig, text: str, *, source: str = CONFIG_ENV) -> ZenohConfig:
+    """``config`` with the Zenoh config ``text`` (a JSON object) laid over it: ``mode``,
+    ``listen.endpoints`` and ``connect.endpoints`` replace the session's; a client never
+    listens; any other key is merged into ``extra``. Raises :class:`FabricError`."""
+    body = "\n".join(line for line in text.splitlines() if not line.lstrip().startswith("//"))
+    try:
+        doc = json.loads(body)
+    except ValueError as exc:
+        raise FabricError(
+            f"{source}: not a JSON Zenoh config (JSON with whole-line // comments): {exc}"
+        ) from None
+    if not isinstance(doc, dict):
+        raise FabricError(f"{source}: a Zenoh config is a JSON object, got {type(doc).__name__}")
+    changes: dict[str, Any] = {}
+    extra = dict(config.extra)
+    for key, value in doc.items():
+        if key == "mode":
+            if value not in ("peer", "client", "router"):
+                raise FabricError(f"{source}: mode {value!r} is not peer, client or router")
+            changes["mode"] = value
+        elif key in ("listen", "connect"):
+            endpoints = value.get("endpoints") if isinstance(value, dict) else None
+            if not isinstance(endpoints, list) or not all(isinstance(e, str) for e in endpoints):
+                raise FabricError(f"{source}: {key}.endpoints must be a list of endpoints")
+            changes[key] = endpoints
+            rest = {k: v for k, v in value.items() if k != "endpoints"}
+            if rest:
+                extra[key] = rest
+        else:
+            extra[key] = value
+    mode = changes.get("mode", config.mode)
+    if mode == "client":
+        changes["listen"] = []
+    return msgspec.structs.replace(config, **changes, extra=extra)
 
 
 def _matching(entity: Any) -> bool:
@@ -198,6 +244,7 @@ class ZenohFabric:
         """Changes whenever a subscription here or a publisher's match elsewhere changes
         (set from Zenoh's thread too: each change takes a value never used before)."""
         self._session: zenoh.Session | None = None
+        self._blind = False
         self._handoff: LoopHandoff | None = None
         self._pubs: dict[str, _Pub] = {}
         self._selectors: set[str] = set()
@@ -224,6 +271,16 @@ class ZenohFabric:
         return self._id
 
     @property
+    def reach(self) -> str:
+        """How others reach this session, for logs: ``listening on ...``, or for a
+        client ``a Zenoh client of <router>``."""
+        if self.endpoints:
+            return f"listening on {', '.join(self.endpoints)}"
+        if self.config.mode == "client":
+            return f"a Zenoh client of {', '.join(self.config.connect) or '(no router)'}"
+        return f"connecting to {', '.join(self.config.connect) or '(nothing)'}"
+
+    @property
     def session(self) -> zenoh.Session:
         self._life.check_open()
         assert self._session is not None
@@ -235,6 +292,20 @@ class ZenohFabric:
         return self._handoff.push
 
     async def __aenter__(self) -> ZenohFabric:
+        overlay = os.environ.get(CONFIG_ENV)
+        if overlay:
+            try:
+                text = await anyio.Path(overlay).read_text()
+            except OSError as exc:
+                raise FabricError(
+                    f"{CONFIG_ENV}={overlay}: cannot read it ({exc.strerror or exc}); point "
+                    "it at a Zenoh config file, or unset it"
+                ) from None
+            self.config = node_overlay(self.config, text, source=overlay)
+        # A client learns of matching subscribers only after its router answers the
+        # publisher's declaration: until then every put goes to the router, which routes
+        # it (waiting for the answer would lose the first samples on each new key).
+        self._blind = self.config.mode == "client"
         self.endpoints = [_concrete(e) for e in self.config.listen]
         config = msgspec.structs.replace(self.config, listen=self.endpoints)
         try:
@@ -354,7 +425,7 @@ class ZenohFabric:
         # sending it samples: skipping the put before then loses nothing Zenoh delivers.
         # Other processes first: a local subscriber may handle the sample in this task
         # at once, and what it sends must not reach them before the sample itself.
-        if cell.matching:
+        if cell.matching or self._blind:
             try:
                 cell.pub.put(payload.data if type(payload) is Outgoing else payload)
             except zenoh.ZError as exc:
