@@ -332,6 +332,11 @@ class ComponentSpec(_Plan, frozen=True, kw_only=True):
     """Knowledge keys it writes."""
     dispatch: Dispatch | None = None
     """When it runs."""
+    run: list[str] = []
+    """A command ``rap up`` starts and supervises for it on its compute node (a simulator,
+    a bridge, the robot's drivers), as argv: ``{python}`` stands for the Python that runs
+    RAP, ``{system}`` for the system name, ``{model_dir}`` for the model's folder. The
+    process reaches the fabric through its compute node's router (``RAP_ZENOH_CONFIG``)."""
     threads: dict[Name, ThreadSpec] = {}
     """Its threads, when the design says how it is split (AADL threads)."""
     modes: list[Name] = []
@@ -541,6 +546,28 @@ def plan_findings(plan: DeploymentPlan) -> Iterator[Finding]:
                 "compute_nodes",
                 False,
             )
+        if comp.run:
+            if comp.module is not None:
+                yield (
+                    ("components", name, "run"),
+                    f"component {name!r} has both module: (a Node the runner imports) and "
+                    "run: (a command rap up starts); keep the one that says how it runs",
+                    False,
+                )
+            elif comp.node is None:
+                yield (
+                    ("components", name, "run"),
+                    f"component {name!r} has a command to run but no compute node to run "
+                    f"it on; add 'node: <name>' with one of: {listed or '(none yet)'}",
+                    False,
+                )
+            if not comp.run[0].strip():
+                yield (
+                    ("components", name, "run", 0),
+                    f"component {name!r}: run: starts with an empty program name; give "
+                    "the command as a list, e.g. ['{python}', '-m', 'sim_world']",
+                    False,
+                )
 
 
 def _name_findings(loc: Location, what: str, name: str) -> Iterator[Finding]:

@@ -118,8 +118,10 @@ def load_share(doc: PlanDocument, compute_node: str) -> NodeShare:
     loaded: list[LoadedComponent] = []
     for name, spec in plan.components_on(compute_node).items():
         loc = ("components", name)
-        if spec.external:
-            continue  # described for the checks; something else runs it
+        if spec.external or spec.run:
+            continue  # described for the checks; something else runs it (rap up: run:)
+        if spec.module is None and spec.stage is None and spec.role == "knowledge":
+            continue  # a design's knowledge store: RAP's knowledge service plays it
         if spec.module is None:
             raise _fail(
                 doc,

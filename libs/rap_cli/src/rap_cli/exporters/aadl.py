@@ -48,6 +48,7 @@ property set RAP is
   Role: aadlstring applies to (process, device);
   Module: aadlstring applies to (process);
   External: aadlboolean applies to (process, device);
+  Run: list of aadlstring applies to (process, device);
   Config: aadlstring applies to (process);
   Config_Type: aadlstring applies to (process);
   Mode_Transitions: aadlstring applies to (process);
@@ -113,6 +114,8 @@ def _process(name: str, pid: str, comp: ComponentSpec, types: Types) -> Iterator
             props.append(f"RAP::{prop} => {aadl_string(value)}")
     if comp.external:
         props.append("RAP::External => true")
+    if comp.run:
+        props.append(f"RAP::Run => {strings(comp.run)}")
     if comp.config:
         props.append(f"RAP::Config => {aadl_string(json.dumps(comp.config, sort_keys=True))}")
     if comp.reads:

@@ -7,7 +7,7 @@ design uses them, they decide over the importer's inferences:
   an empty one on a connection says it has no name in the model;
 - ``RAP::Doc`` is its doc; ``RAP::Design_Properties`` (``"Name => value"`` strings) are
   its ``properties``; no ``RAP::`` property is ever copied into ``properties``;
-- ``RAP::Stage``/``Role``/``Module``/``External``/``Config`` (JSON)/``Config_Type``/
+- ``RAP::Stage``/``Role``/``Module``/``External``/``Run``/``Config`` (JSON)/``Config_Type``/
   ``Reads``/``Writes``/``Dispatch``/``Rate_Hz`` are the component's fields, and
   ``RAP::Mode_Transitions`` (JSON ``[[from, to, [trigger, ..]], ..]``) all its mode
   transitions when AADL cannot write one (a transition without a trigger);
@@ -256,6 +256,7 @@ def rap_component(
         config=config if isinstance(config, dict) else {},
         config_type=rap_string(props, "Config_Type"),
         ports=ports,
+        run=rap_strings(props, "Run") or [],
         reads=rap_strings(props, "Reads") or [],
         writes=rap_strings(props, "Writes") or [],
         dispatch=dispatch,
