@@ -163,7 +163,12 @@ def test_a_small_fuzz_run_reaches_every_target_and_measures_every_process(
     assert sum(queries.values()) == targets["kb/** (queries)"]["sent"]
     assert report["rejections"]["records"] > 0
     assert report["rejections"]["by_reason"]
-    assert set(report["processes"]) == {"knowledge", "runner-laptop", "trust_stage_order"}
+    assert set(report["processes"]) == {
+        "knowledge",
+        "runner-robot",
+        "runner-edge",
+        "trust_stage_order",
+    }
     for name, p in report["processes"].items():
         assert p["rss_before_kib"] > 0, name
         assert p["exit_code"] is not None, name

@@ -40,7 +40,7 @@ async def test_a_silent_link_is_logged_with_its_return(tmp_path: Path) -> None:
         ) as kb,
         await anyio.open_process(
             [
-                *(sys.executable, "-m", "maplek_runner", str(PLAN), "--node", "laptop"),
+                *(sys.executable, "-m", "maplek_runner", str(PLAN), "--node", "robot"),
                 *("--listen", runner_ep, "--connect", kb_ep),
             ],
             cwd=REPO,

@@ -328,4 +328,4 @@ def test_the_lidar_model_is_complete_and_clean() -> None:
         ("legitimate.verdict", "executor.verdict"),
         ("executor.spin_config", "robot.spin_config"),
     } <= links
-    assert set(view["bindings"].values()) == {"laptop"}
+    assert set(view["bindings"].values()) == {"robot", "edge"}

@@ -233,7 +233,7 @@ def test_rap_export_aadl_writes_the_folder_and_refuses_a_wrong_model(tmp_path: P
         "demo_physical.aadl",
     ]
     bad = tmp_path / "bad.yaml"
-    bad.write_text(LIDAR.read_text().replace("node: laptop\n", "node: nowhere\n", 1))
+    bad.write_text(LIDAR.read_text().replace("node: edge\n", "node: nowhere\n", 1))
     res = runner.invoke(app, ["export", "aadl", str(bad), "-o", str(tmp_path / "bad")])
     assert res.exit_code == 1
     assert not (tmp_path / "bad").exists()

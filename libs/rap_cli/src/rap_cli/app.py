@@ -276,5 +276,19 @@ def export_aadl_cmd(
     raise typer.Exit(OK)
 
 
+def _register_commands() -> None:
+    """Commands that live in modules of their own (each has ``register(app)``)."""
+    from . import up
+
+    up.register(app)
+
+
+_register_commands()
+
+
 def main() -> None:
     app()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,281 @@
+"""What runs on each compute node of a model, for ``rap up`` and the generated compose files.
+
+    doc = load_plan("model.yaml")
+    paths = Paths.local(Path("model.yaml"), Path(".rap/demo"), "robot")
+    for p in node_processes(doc, "robot", paths=paths, addresses={"edge": "10.0.0.2"}):
+        p.command(sys.executable)   # argv with PYTHON replaced by the interpreter
+
+Each compute node runs one Zenoh router (``rap_cli.router``); every other process of the
+node is a Zenoh client of it (``RAP_ZENOH_CONFIG`` names the client config), so the
+processes of a node reach each other and every other node through the routers, whatever
+the number of processes and hosts. The router listens on the node's ``listen`` endpoints
+(and on a local endpoint for its clients) and connects to the node's ``connect``
+endpoints and to ``fabric.routers``.
+
+An endpoint whose host is the name of a compute node (``tcp/edge:7447``) is resolved to
+that node's address: the one given with ``--address edge=HOST``, else the model's
+``address:``, else the name itself (left to DNS, as on a compose network).
+
+Knowledge runs on ``knowledge.node`` (the first compute node when none is named), the
+trust checker on ``trust.node`` (one process per spec), the runner on every node that has
+components with a ``module:``, and each component with ``run:`` as its own process.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path, PurePosixPath
+from typing import Any, Literal
+
+from rap_schemas import DeploymentPlan, PlanDocument
+
+__all__ = [
+    "CONFIG_ENV",
+    "PYTHON",
+    "Paths",
+    "ProcessSpec",
+    "Role",
+    "client_config",
+    "knowledge_node",
+    "node_processes",
+    "resolve_endpoint",
+    "resolve_url",
+    "router_config",
+]
+
+PYTHON = "{python}"
+"""Stands for the Python interpreter in :attr:`ProcessSpec.argv`."""
+CONFIG_ENV = "RAP_ZENOH_CONFIG"
+"""The environment variable a RAP process reads its Zenoh client config from
+(``rap_sdk.fabric.CONFIG_ENV``)."""
+
+Role = Literal["router", "knowledge", "runner", "trust", "component"]
+
+_HOST = re.compile(r"^(?P<proto>[a-z][a-z0-9+\-]*)/(?P<host>\[[^\]]*\]|[^:/\[]+)(?P<rest>.*)$")
+
+
+@dataclass(frozen=True, slots=True)
+class ProcessSpec:
+    """One supervised process of a compute node's share."""
+
+    name: str
+    """Unique on the node: ``router``, ``knowledge``, ``runner``, ``trust-<spec>``, or the
+    component's name."""
+    role: Role
+    argv: tuple[str, ...]
+    """The command; :data:`PYTHON` stands for the interpreter."""
+    env: Mapping[str, str] = field(default_factory=dict)
+    """Environment variables it needs on top of the inherited ones."""
+    doc: str = ""
+
+    def command(self, python: str) -> list[str]:
+        """The argv with the interpreter filled in."""
+        return [python if a == PYTHON else a for a in self.argv]
+
+
+@dataclass(frozen=True, slots=True)
+class Paths:
+    """How the processes name files: the model, its folder, the node's Zenoh configs, and
+    where stateful services keep their data. ``rap up`` uses absolute paths on this
+    machine; compose files use the paths inside the image."""
+
+    model: str
+    model_dir: str
+    router_config: str
+    client_config: str
+    data_dir: str
+
+    @classmethod
+    def local(cls, model: Path, run_dir: Path, node: str) -> Paths:
+        model = model.resolve()
+        node_dir = run_dir.resolve() / node
+        return cls(
+            model=str(model),
+            model_dir=str(model.parent),
+            router_config=str(node_dir / "zenoh-router.json5"),
+            client_config=str(node_dir / "zenoh-client.json5"),
+            data_dir=str(node_dir / "data"),
+        )
+
+
+def knowledge_node(plan: DeploymentPlan) -> str | None:
+    """The compute node that hosts knowledge: ``knowledge.node``, else the first one."""
+    if plan.knowledge.node is not None:
+        return plan.knowledge.node
+    return next(iter(plan.compute_nodes), None)
+
+
+def resolve_endpoint(
+    endpoint: str, plan: DeploymentPlan, addresses: Mapping[str, str] | None = None
+) -> str:
+    """``endpoint`` with a compute node's name as its host replaced by that node's address
+    (``addresses`` first, then the model's ``address:``)."""
+    m = _HOST.match(endpoint)
+    if m is None:
+        return endpoint
+    host = m["host"]
+    if host not in plan.compute_nodes:
+        return endpoint
+    address = (addresses or {}).get(host) or plan.compute_nodes[host].address
+    if not address:
+        return endpoint
+    if ":" in address and not address.startswith("["):
+        address = f"[{address}]"  # an IPv6 address in a locator
+    return f"{m['proto']}/{address}{m['rest']}"
+
+
+def resolve_url(url: str, plan: DeploymentPlan, addresses: Mapping[str, str] | None = None) -> str:
+    """A service URL (``redis://companion:6379/0``) whose host is a compute node's name, or
+    the address the model gives it, pointed at the address in ``addresses`` (or the
+    model's, for a name)."""
+    scheme, sep, rest = url.partition("://")
+    if not sep:
+        return url
+    hostport, slash, tail = rest.partition("/")
+    auth, at, hostport = hostport.rpartition("@")
+    host, colon, port = hostport.partition(":")
+    for name, spec in plan.compute_nodes.items():
+        if host in (name, spec.address):
+            address = (addresses or {}).get(name) or spec.address or host
+            return f"{scheme}://{auth}{at}{address}{colon}{port}{slash}{tail}"
+    return url
+
+
+def _zenoh_base(mode: str) -> dict[str, Any]:
+    return {
+        "mode": mode,
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": {"link": {"tx": {"lease": 3000, "keep_alive": 4}}},
+    }
+
+
+def router_config(
+    plan: DeploymentPlan,
+    node: str,
+    *,
+    local: Sequence[str],
+    addresses: Mapping[str, str] | None = None,
+) -> dict[str, Any]:
+    """The Zenoh config of ``node``'s router: it listens on ``local`` (where the node's
+    clients connect) and the node's ``listen`` endpoints, and connects to its ``connect``
+    endpoints and the model's ``fabric.routers`` (its own listen endpoints excepted).
+    Endpoints naming a compute node are resolved (:func:`resolve_endpoint`)."""
+    spec = plan.compute_nodes[node]
+    listen = [*local, *(e for e in spec.listen if e not in local)]
+    own = set(listen) | {resolve_endpoint(e, plan, addresses) for e in spec.listen}
+    connect: list[str] = []
+    for e in [*spec.connect, *plan.fabric.routers]:
+        r = resolve_endpoint(e, plan, addresses)
+        if r not in own and r not in connect and e not in spec.listen:
+            connect.append(r)
+    conf = _zenoh_base("router")
+    conf["listen"] = {"endpoints": listen}
+    # a router keeps trying the routers it connects to: a link cut and restored heals
+    conf["connect"] = {
+        "endpoints": connect,
+        "timeout_ms": -1,
+        "exit_on_failure": False,
+        "retry": {"period_init_ms": 250, "period_max_ms": 2000, "period_increase_factor": 2},
+    }
+    return conf
+
+
+def client_config(router: str) -> dict[str, Any]:
+    """The Zenoh config of the node's other processes: clients of its router."""
+    conf = _zenoh_base("client")
+    conf["listen"] = {"endpoints": []}
+    conf["connect"] = {"endpoints": [router]}
+    return conf
+
+
+def render_zenoh(conf: Mapping[str, Any], *, title: str) -> str:
+    """A Zenoh config as JSON5 text: JSON with whole-line ``//`` comments (Zenoh reads
+    JSON5; :func:`rap_sdk.fabric.node_overlay` skips such comments)."""
+    import json
+
+    lines = [
+        f"// {title}",
+        "// Generated by rap from the system model; regenerate rather than edit.",
+        "// TLS and mutual authentication: transport.link.tls (set by the model's security",
+        "// options); access control: access_control. Neither is set here yet.",
+        json.dumps(conf, indent=2),
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def _has_runner(plan: DeploymentPlan, node: str) -> bool:
+    return any(c.module is not None and not c.external for c in plan.components_on(node).values())
+
+
+def _rel(base: str, path: str) -> str:
+    """``path`` (from the model) against folder ``base``, unless it is absolute."""
+    return path if path.startswith("/") else str(PurePosixPath(base) / path)
+
+
+def node_processes(
+    doc: PlanDocument,
+    node: str,
+    *,
+    paths: Paths,
+    system: str | None = None,
+    log_level: str = "INFO",
+    addresses: Mapping[str, str] | None = None,
+) -> list[ProcessSpec]:
+    """What compute node ``node`` runs, in start order (the router first). ``system``
+    overrides the model's system name; ``addresses`` as for :func:`resolve_endpoint`
+    (a Redis URL whose host is a compute node's name or address is resolved too)."""
+    plan = doc.plan
+    if node not in plan.compute_nodes:
+        raise KeyError(
+            f"{doc.source}: compute node {node!r} is not in the model; its compute nodes "
+            f"are: {', '.join(plan.compute_nodes)}"
+        )
+    sys_name = system or plan.system
+    client = {CONFIG_ENV: paths.client_config}
+    out = [
+        ProcessSpec(
+            "router",
+            "router",
+            (PYTHON, "-m", "rap_cli.router", "--config", paths.router_config),
+            doc=f"the Zenoh router of compute node {node}",
+        )
+    ]
+    if knowledge_node(plan) == node:
+        kb = plan.knowledge
+        argv = [PYTHON, "-m", "knowledge", "--system", sys_name, "--backend", kb.backend]
+        if kb.backend == "sqlite":
+            argv += ["--sqlite-path", _rel(paths.data_dir, kb.path or "knowledge.sqlite3")]
+        elif kb.backend == "redis":
+            argv += [
+                "--redis-url",
+                resolve_url(kb.url or "redis://127.0.0.1:6379/0", plan, addresses),
+            ]
+        argv += ["--log-level", log_level]
+        out.append(ProcessSpec("knowledge", "knowledge", tuple(argv), client, "knowledge"))
+    if _has_runner(plan, node):
+        argv = [PYTHON, "-m", "maplek_runner", paths.model, "--node", node]
+        argv += ["--system", sys_name, "--log-level", log_level]
+        names = ", ".join(n for n, c in plan.components_on(node).items() if c.module)
+        out.append(ProcessSpec("runner", "runner", tuple(argv), client, names))
+    if plan.trust.node == node:
+        for spec in plan.trust.specs:
+            stem = PurePosixPath(spec).stem
+            argv = [PYTHON, "-m", "trust_checker", _rel(paths.model_dir, spec)]
+            argv += ["--fabric", sys_name, "--node", f"trust-{stem}", "--log-level", log_level]
+            out.append(ProcessSpec(f"trust-{stem}", "trust", tuple(argv), client, spec))
+    for name, comp in plan.components_on(node).items():
+        if not comp.run:
+            continue
+        subst = {"{system}": sys_name, "{model_dir}": paths.model_dir}
+        argv = []
+        for a in comp.run:
+            if a == PYTHON:
+                argv.append(PYTHON)
+                continue
+            for k, v in subst.items():
+                a = a.replace(k, v)
+            argv.append(a)
+        out.append(ProcessSpec(name, "component", tuple(argv), client, comp.doc))
+    return out

@@ -1,0 +1,185 @@
+"""``python -m rap_cli.router --config FILE``: a compute node's Zenoh router.
+
+Every process of a compute node is a Zenoh client of its node's router; the routers link
+the nodes (``rap_cli.deploy``). The router opens one Zenoh session in router mode from
+the JSON5 file (``rap up`` and the generated compose files write it), logs where it
+listens and every link to another session that comes up, is lost or is restored, and
+runs until SIGTERM or SIGINT.
+
+Exit codes: 0 stopped by a signal, 1 the session could not open (an endpoint taken, say),
+2 an unusable config file.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import re
+import signal
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, Any
+
+import anyio
+import typer
+import zenoh
+from rap_sdk.entry import fail, run_cli, setup_logging
+
+__all__ = ["READY", "cli", "main"]
+
+READY = "listening on"
+"""What the router logs once its listeners are bound (``rap up`` waits for it)."""
+
+cli = typer.Typer(add_completion=False, help=__doc__, rich_markup_mode=None)
+log = logging.getLogger("rap.router")
+
+
+@cli.command()
+def main(
+    config: Annotated[
+        Path,
+        typer.Option(
+            "--config",
+            help="The router's Zenoh config (JSON5), as rap up or rap generate wrote it.",
+        ),
+    ],
+    log_level: Annotated[str, typer.Option(help="Logging level.")] = "INFO",
+) -> None:
+    """Run a compute node's Zenoh router until SIGTERM or SIGINT."""
+    setup_logging(log_level)
+    conf = load_config(config)
+    zenoh.try_init_log_from_env()
+    anyio.run(_serve, conf, str(config))
+
+
+def load_config(path: Path) -> zenoh.Config:
+    """The router's Zenoh config from ``path``, in router mode; raises ``EntryError``."""
+    if not path.is_file():
+        raise fail(
+            f"{path}: no such file - give the router config that rap up wrote "
+            "(<run-dir>/<node>/zenoh-router.json5)"
+        )
+    try:
+        conf = zenoh.Config.from_file(str(path))
+        mode = _json(conf, "mode")
+        if mode not in (None, "router"):
+            raise fail(f"{path}: mode is {mode!r} - a router config says mode: 'router'")
+        conf.insert_json5("mode", '"router"')
+    except zenoh.ZError as exc:
+        raise fail(
+            f"{path}: not a usable Zenoh config ({_one_line(exc)}) - fix it, or run rap up "
+            "again to rewrite it"
+        ) from None
+    return conf
+
+
+def _json(conf: zenoh.Config, key: str) -> Any:
+    try:
+        return json.loads(conf.get_json(key))
+    except (zenoh.ZError, ValueError, TypeError):
+        return None
+
+
+def _endpoints(conf: zenoh.Config, key: str) -> list[str]:
+    value = _json(conf, key)
+    if isinstance(value, list):
+        return [str(v) for v in value]
+    if isinstance(value, dict):  # per-mode lists: { router: [...], peer: [...] }
+        router = value.get("router", [])
+        return [str(v) for v in router] if isinstance(router, list) else []
+    return []
+
+
+def _one_line(exc: BaseException) -> str:
+    """Zenoh's error message on one line, without the Rust source locations."""
+    return " ".join(_SOURCE.sub("", str(exc)).split())
+
+
+_SOURCE = re.compile(r"\s+at\s+/\S+\.rs:\d+\.?")
+
+
+@dataclass
+class LinkLog:
+    """Logs links to other sessions: the first one to a Zenoh id is ``up``, a later one
+    ``restored``; a closed one ``lost``."""
+
+    linked: dict[str, str] = field(default_factory=dict)
+    """Zenoh id -> what it is (router, peer, client), for the links up now."""
+    seen: set[str] = field(default_factory=set)
+
+    def change(self, zid: str, what: str, up: bool) -> None:
+        if up:
+            if zid in self.linked:
+                return
+            self.linked[zid] = what
+            again = zid in self.seen
+            self.seen.add(zid)
+            log.info(
+                "link to %s %s (%s; %d link(s) up)",
+                zid,
+                "restored" if again else "up",
+                what,
+                len(self.linked),
+            )
+            return
+        what = self.linked.pop(zid, what)
+        (log.warning if what == "router" else log.info)(
+            "link to %s lost (%s; %d link(s) left)", zid, what, len(self.linked)
+        )
+
+
+async def _serve(conf: zenoh.Config, source: str) -> None:
+    listen = _endpoints(conf, "listen/endpoints")
+    connect = _endpoints(conf, "connect/endpoints")
+    with anyio.open_signal_receiver(signal.SIGTERM, signal.SIGINT) as signals:
+        try:
+            session = await anyio.to_thread.run_sync(zenoh.open, conf)
+        except zenoh.ZError as exc:
+            raise fail(
+                f"{source}: the router cannot open its Zenoh session: {_one_line(exc)} - "
+                "check its listen endpoints: each must be an address of this machine that "
+                "no other process listens on",
+                1,
+            ) from None
+        links = LinkLog()
+        loop = asyncio.get_running_loop()
+        put = zenoh.SampleKind.PUT
+
+        def on_event(event: zenoh.TransportEvent) -> None:  # a Zenoh thread: hand over
+            change = (str(event.transport.zid), str(event.transport.whatami), event.kind == put)
+            _hand_over(loop, links.change, change)
+
+        listener = session.info.declare_transport_events_listener(on_event, history=True)
+        try:
+            log.info(
+                "router %s %s %s; connecting to %s",
+                session.info.zid(),
+                READY,
+                ", ".join(listen) or "(nothing)",
+                ", ".join(connect) or "(nothing)",
+            )
+            async for signum in signals:
+                log.info("received %s; stopping", signal.Signals(signum).name)
+                break
+        finally:
+            listener.undeclare()
+            with anyio.CancelScope(shield=True):
+                await anyio.to_thread.run_sync(session.close)
+    log.info("router stopped")
+
+
+def _hand_over(
+    loop: asyncio.AbstractEventLoop,
+    fn: Callable[[str, str, bool], None],
+    args: tuple[str, str, bool],
+) -> None:
+    try:
+        loop.call_soon_threadsafe(fn, *args)
+    except RuntimeError:  # the loop has closed: the router is stopping
+        pass
+
+
+if __name__ == "__main__":
+    run_cli(cli)
