@@ -23,6 +23,7 @@ help:
 	@echo "make bench      run the benchmarks; results in bench/results and docs/benchmarks.md"
 	@echo "make bench-fleet  50 robots' loops at 5 Hz on this machine (bench/results/fleet.json)"
 	@echo "make fuzz       fuzz every subscriber of a running loop (bench/results/fuzz.json, docs/reliability.md)"
+	@echo "make wheels    RAP's distributions as wheels in WHEELS_DIR (for the image rap generate describes)"
 
 # Install uv from PyPI when it is missing, then sync the locked workspace.
 setup:
@@ -90,6 +91,13 @@ demo: setup
 # N seeded scenarios with the loop and without: out/eval/lidar_occlusion.json
 eval: setup
 	$(RUN) python -m lidar_occlusion.eval $(EVAL_ARGS)
+
+# RAP's own distributions as wheels (they are not on PyPI), e.g. for the image of a package
+# that rap generate wrote: make wheels WHEELS_DIR=<generated folder>/deploy/wheels
+WHEELS_DIR ?= dist/wheels
+.PHONY: wheels
+wheels: setup
+	$(UV) build --all-packages --wheel --out-dir "$(WHEELS_DIR)"
 
 clean:
 	rm -rf .venv .pytest_cache .mypy_cache .ruff_cache out

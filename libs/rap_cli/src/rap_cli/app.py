@@ -278,8 +278,9 @@ def export_aadl_cmd(
 
 def _register_commands() -> None:
     """Commands that live in modules of their own (each has ``register(app)``)."""
-    from . import up
+    from . import generate_cli, up
 
+    generate_cli.register(app)
     up.register(app)
 
 

@@ -1,0 +1,206 @@
+"""rap new / rap generate: the generated package runs as generated, passes its own tests,
+and keeps the user's code across regeneration."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from rap_cli.app import app
+from rap_cli.generate.regions import RegionError, merge, regions
+from typer.testing import CliRunner
+
+FIXTURES = Path(__file__).parent / "fixtures"
+runner = CliRunner()
+
+
+def _rap(*args: str, cwd: Path) -> tuple[int, str]:
+    old = Path.cwd()
+    os.chdir(cwd)
+    try:
+        result = runner.invoke(app, list(args))
+    finally:
+        os.chdir(old)
+    return result.exit_code, result.output
+
+
+def _pytest(package: Path) -> subprocess.CompletedProcess[str]:
+    """``python -m pytest`` in the package, with the Python environment RAP runs in."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    return subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:randomly"],
+        cwd=package,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+        check=False,
+    )
+
+
+@pytest.fixture(scope="module")
+def starter(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    where = tmp_path_factory.mktemp("new")
+    code, out = _rap("new", "plant", cwd=where)
+    assert code == 0, out
+    return where / "plant"
+
+
+def test_rap_new_scaffolds_a_package_that_passes_its_own_tests(starter: Path) -> None:
+    for rel in (
+        "model.yaml",
+        "README.md",
+        "pyproject.toml",
+        "plant/messages.py",
+        "plant/nodes/monitor.py",
+        "plant/nodes/execute.py",
+        "tests/test_loop.py",
+        "tests/test_execute.py",
+        "plant/schemas/Setpoint.schema.json",
+    ):
+        assert (starter / rel).is_file(), rel
+    readme = (starter / "README.md").read_text()
+    assert "python -m pytest" in readme
+    assert "rap up model.yaml --all" in readme
+    code, out = _rap("check", "model.yaml", cwd=starter)
+    assert code == 0, out
+    run = _pytest(starter)
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert "6 passed" in run.stdout
+
+
+def test_the_execute_stage_acts_only_through_the_gate(starter: Path) -> None:
+    text = (starter / "plant/nodes/execute.py").read_text()
+    assert "gate = ApprovalGate(legitimators=['legitimate']" in text
+    assert "@gate.on_approved(node, plan=messages.Setpoint)" in text
+    assert "on_event('approved-setpoint')" not in text
+    legit = (starter / "plant/nodes/legitimate.py").read_text()
+    assert "@legitimate(node, plan=messages.Setpoint)" in legit
+
+
+def test_messages_keep_constraints_docs_and_are_registered(starter: Path) -> None:
+    schema = json.loads((starter / "plant/schemas/Setpoint.schema.json").read_text())
+    assert schema["$id"] == "plant.Setpoint/1"
+    target = schema["$defs"]["Setpoint"]["properties"]["target"]
+    assert target["minimum"] == -10
+    assert target["maximum"] == 10
+    assert target["description"] == "The new set point."
+    probe = (
+        "import msgspec, rap_schemas.catalog as c\n"
+        "from plant import messages\n"
+        "cls = c.by_type('plant.Setpoint/1')\n"
+        "assert cls is messages.Setpoint\n"
+        "try:\n"
+        "    msgspec.json.decode(b'{\"target\": 11}', type=cls)\n"
+        "except msgspec.ValidationError as e:\n"
+        "    print('refused', e)\n"
+    )
+    probe_file = starter / "probe_messages.py"
+    probe_file.write_text(probe)
+    try:
+        run = subprocess.run(
+            [sys.executable, "probe_messages.py"],
+            cwd=starter,
+            capture_output=True,
+            text=True,
+            timeout=60,
+            check=False,
+        )
+    finally:
+        probe_file.unlink()
+    assert run.returncode == 0, run.stderr
+    assert "refused Expected `float` <= 10" in run.stdout
+
+
+def test_user_code_survives_regeneration(tmp_path: Path) -> None:
+    code, out = _rap("new", "edited", cwd=tmp_path)
+    assert code == 0, out
+    pkg = tmp_path / "edited"
+    node = pkg / "edited/nodes/analyse.py"
+    text = node.read_text()
+    mine = "    # my analysis starts here\n    log.info('observed %s', msg.value)\n"
+    marker = "    # region user: on_observed\n"
+    assert marker in text
+    node.write_text(text.replace(marker, marker + mine))
+    config_marker = "    # region user: config\n"
+    node.write_text(
+        node.read_text().replace(config_marker, config_marker + "    threshold: float = 0.5\n")
+    )
+    readme = pkg / "README.md"
+    readme.write_text("my own readme\n")
+    # the model changes: analyse gets a second output; regenerate in place
+    model = pkg / "model.yaml"
+    model.write_text(
+        model.read_text().replace(
+            "      deviation: {direction: out, type: Reading, topic: deviation}",
+            "      deviation: {direction: out, type: Reading, topic: deviation}\n"
+            "      alarm: {direction: out, kind: event, topic: alarm}",
+        )
+    )
+    code, out = _rap("generate", "model.yaml", cwd=pkg)
+    assert code == 0, out
+    again = node.read_text()
+    assert mine in again
+    assert "    threshold: float = 0.5\n" in again
+    assert "async def send_alarm(ctx: Context) -> None:" in again
+    assert readme.read_text() == "my own readme\n"
+    # the edited, regenerated package passes its tests (the new output is expected too)
+    assert (
+        "await h.expect_event('alarm', after=mark)" in (pkg / "tests/test_analyse.py").read_text()
+    )
+    run = _pytest(pkg)
+    assert run.returncode == 0, run.stdout + run.stderr
+
+
+def test_a_region_whose_port_is_gone_is_kept_commented_out() -> None:
+    old = "x\n    # region user: on_a\n    do_a()\n    # endregion user: on_a\n"
+    new = "x\n    # region user: on_b\n    pass\n    # endregion user: on_b\n"
+    merged = merge(new, old)
+    assert "#     do_a()" in merged
+    assert "regions of an earlier generation" in merged
+
+
+def test_broken_region_markers_refuse_the_generation(tmp_path: Path) -> None:
+    code, out = _rap("new", "broken", cwd=tmp_path)
+    assert code == 0, out
+    pkg = tmp_path / "broken"
+    node = pkg / "broken/nodes/plan.py"
+    node.write_text(node.read_text().replace("    # endregion user: on_deviation\n", "", 1))
+    before = (pkg / "broken/messages.py").stat().st_mtime_ns
+    code, out = _rap("generate", "model.yaml", cwd=pkg)
+    assert code == 2
+    assert "plan.py:96: region" in out
+    assert "close that one first" in out
+    assert "nothing was written" in out
+    assert (pkg / "broken/messages.py").stat().st_mtime_ns == before
+    with pytest.raises(RegionError):
+        regions("# region user: a\n# region user: b\n")
+
+
+def test_rap_new_from_a_design_generates_a_package_that_passes_its_tests(tmp_path: Path) -> None:
+    design = FIXTURES / "aadl_import"
+    if not design.is_dir():
+        pytest.fail(f"fixture {design} is missing")
+    code, out = _rap("new", "fromdesign", "--from", str(design), cwd=tmp_path)
+    assert code == 0, out
+    pkg = tmp_path / "fromdesign"
+    assert (pkg / "model.yaml").is_file()
+    run = _pytest(pkg)
+    assert run.returncode == 0, run.stdout + run.stderr
+
+
+def test_rap_new_refuses_a_folder_that_is_not_empty(tmp_path: Path) -> None:
+    (tmp_path / "taken").mkdir()
+    (tmp_path / "taken" / "x").write_text("")
+    code, out = _rap("new", "taken", cwd=tmp_path)
+    assert code == 2
+    assert "exists and is not empty" in out
+
+
+def test_generated_samples_satisfy_the_constraints(starter: Path) -> None:
+    text = (starter / "plant/samples.py").read_text()
+    assert "messages.Setpoint(target=0.0)" in text
