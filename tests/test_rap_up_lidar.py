@@ -22,7 +22,7 @@ import pytest
 from anyio.abc import Process
 from anyio.streams.buffered import BufferedByteReceiveStream
 from rap_schemas import Verdict, keys
-from rap_sdk.fabric import CONFIG_ENV
+from rap_sdk.fabric import CONFIG_ENV, free_port
 from rap_sdk.testing import Harness, Record
 
 pytestmark = [pytest.mark.anyio, pytest.mark.zenoh, pytest.mark.slow, pytest.mark.timeout(120)]
@@ -89,7 +89,13 @@ async def test_rap_up_all_closes_the_loop_and_rap_down_stops_it(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     run = tmp_path / "run"
-    model = str(MODEL)
+    # the shipped model with only the edge's port changed: 7447 may be taken on this
+    # machine (another rap up of the case, a Zenoh router)
+    text = MODEL.read_text()
+    assert text.count("tcp/edge:7447") >= 2
+    copy = tmp_path / "model.yaml"
+    copy.write_text(text.replace("tcp/edge:7447", f"tcp/edge:{free_port()}"))
+    model = str(copy)
     out = Output()
     argv = [_rap(), "up", model, "--all", "--run-dir", str(run)]
     async with (
