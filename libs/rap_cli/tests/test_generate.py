@@ -204,3 +204,107 @@ def test_rap_new_refuses_a_folder_that_is_not_empty(tmp_path: Path) -> None:
 def test_generated_samples_satisfy_the_constraints(starter: Path) -> None:
     text = (starter / "plant/samples.py").read_text()
     assert "messages.Setpoint(target=0.0)" in text
+
+
+LIMITS_TEST = """
+import pytest
+from knowledge.app import open_service
+from knowledge.config import KnowledgeConfig
+from rap_schemas import Verdict
+from rap_sdk import Context, Node
+from rap_sdk.gate import propose
+from rap_sdk.testing import Harness
+
+from {pkg} import messages
+from {pkg}.nodes import execute, legitimate
+
+pytestmark = pytest.mark.anyio
+
+
+async def test_a_plan_beyond_the_model_limits_never_reaches_the_robot() -> None:
+    rogue = Node("rogue-plan", stage="plan")
+
+    @rogue.on_event("go")
+    async def go(ctx: Context) -> None:
+        await propose(ctx, messages.Setpoint(target=300.0))  # the model says le: 10
+
+    async with Harness(system="t") as h:
+        await h.hold(open_service(KnowledgeConfig(system="t"), fabric=h.fabric))
+        await h.start(legitimate.node, execute.node, rogue)
+        await h.emit("go")
+        verdict = (await h.expect_event("verdict")).decode(Verdict)
+        assert not verdict.approved
+        assert "constraints" in verdict.reason
+        assert not h.of(h.records[0].kind.DATA, "robot/setpoint")
+"""
+
+
+def test_the_legitimate_stage_refuses_a_plan_beyond_the_model_limits(tmp_path: Path) -> None:
+    code, out = _rap("new", "limits", cwd=tmp_path)
+    assert code == 0, out
+    pkg = tmp_path / "limits"
+    # a test file of the user's own: the generator never touches it
+    (pkg / "tests/test_mine_limits.py").write_text(LIMITS_TEST.format(pkg="limits"))
+    code, out = _rap("generate", "model.yaml", cwd=pkg)
+    assert code == 0, out
+    assert (pkg / "tests/test_mine_limits.py").read_text() == LIMITS_TEST.format(pkg="limits")
+    run = _pytest(pkg)
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert "7 passed" in run.stdout
+
+
+def test_a_copied_package_regenerates_its_own_package_not_one_named_after_the_folder(
+    tmp_path: Path,
+) -> None:
+    code, out = _rap("new", "orig", cwd=tmp_path)
+    assert code == 0, out
+    import shutil
+
+    shutil.copytree(tmp_path / "orig", tmp_path / "copy-2")
+    code, out = _rap("generate", "model.yaml", cwd=tmp_path / "copy-2")
+    assert code == 0, out
+    assert not (tmp_path / "copy-2/copy_2").exists()
+    assert "COPY orig/ orig/" in (tmp_path / "copy-2/deploy/Dockerfile").read_text()
+
+
+def test_rap_new_refuses_a_name_that_import_would_resolve_elsewhere(tmp_path: Path) -> None:
+    code, out = _rap("new", "json", cwd=tmp_path)
+    assert code == 2
+    assert "that name is taken by" in out
+    assert not (tmp_path / "json").exists()
+
+
+def test_a_port_of_an_unknown_type_refuses_the_generation(tmp_path: Path) -> None:
+    code, out = _rap("new", "typo", cwd=tmp_path)
+    assert code == 0, out
+    pkg = tmp_path / "typo"
+    model = pkg / "model.yaml"
+    model.write_text(
+        model.read_text().replace(
+            "reading: {direction: in, kind: data, type: Reading,",
+            "reading: {direction: in, kind: data, type: Reeding,",
+        )
+    )
+    code, out = _rap("generate", "model.yaml", cwd=pkg)
+    assert code == 2
+    assert "component 'monitor', port 'reading': type 'Reeding'" in out
+    assert "nothing was written" in out
+
+
+def test_a_region_whose_port_left_the_model_is_reported_and_the_old_file_kept(
+    tmp_path: Path,
+) -> None:
+    code, out = _rap("new", "moved", cwd=tmp_path)
+    assert code == 0, out
+    pkg = tmp_path / "moved"
+    node = pkg / "moved/nodes/analyse.py"
+    marker = "    # region user: on_observed\n"
+    node.write_text(node.read_text().replace(marker, marker + "    log.info('mine')\n"))
+    before = node.read_text()
+    model = pkg / "model.yaml"
+    model.write_text(model.read_text().replace("observed: {direction: in", "seen: {direction: in"))
+    code, out = _rap("generate", "model.yaml", cwd=pkg)
+    assert code == 0, out
+    assert "on_observed no longer exist" in out
+    assert "#     log.info('mine')" in node.read_text()
+    assert (pkg / ".rap/previous/moved/nodes/analyse.py").read_text() == before

@@ -155,6 +155,7 @@ def build(
         await ctx.kb.write(LIDAR_MASK, msg)
         if is_anomaly(mask, planned, scan.angle_increment, handling, cfg):
             raised_at[0] = scan.stamp
+            log.info("%s: anomaly: %d beams occluded; asking for a plan", ana.name, mask.sum())
             await ctx.kb.write(HANDLING, True)
             await ctx.emit(ANOMALY, msg)
 
@@ -209,11 +210,19 @@ def build(
     # -- legitimate ------------------------------------------------------------------------
     @legitimate(leg)
     async def check(ctx: Context, proposal: PlanProposal[SpinPlan]) -> str | None:
-        return check_plan(proposal, ctx.clock.time_ns(), ctx.config)
+        reason = check_plan(proposal, ctx.clock.time_ns(), ctx.config)
+        log.info("%s: plan %s", leg.name, "approved" if reason is None else f"rejected: {reason}")
+        return reason
 
     # -- execute ---------------------------------------------------------------------------
     @gate.on_approved(exe)
     async def act(ctx: Context, proposal: PlanProposal[SpinPlan]) -> None:
+        log.info(
+            "%s: executing an approved plan (%d spin commands) on %s",
+            exe.name,
+            len(proposal.plan.commands),
+            spin_topic,
+        )
         await ctx.publish(spin_topic, proposal.plan)
         await ctx.kb.write(HANDLING, False)
 

@@ -23,7 +23,8 @@ from .view import model_view
 app = typer.Typer(
     name="rap",
     help="RAP's toolkit: import designs (AADL, AADL-IL, RoboChart), check and show system "
-    "models, export them as AADL.",
+    "models, export them as AADL, generate the package that runs a model (rap new, rap "
+    "generate) and run it (rap up, rap down, rap health).",
     no_args_is_help=True,
     rich_markup_mode="markdown",
     pretty_exceptions_enable=False,
@@ -70,7 +71,8 @@ RootOpt = Annotated[
 
 @app.callback()
 def _root() -> None:
-    """RAP's toolkit: import designs, check and show system models, export them."""
+    """RAP's toolkit: import designs, check, show and export system models, generate
+    their packages and run them."""
 
 
 def _format(value: str | None) -> Format | None:

@@ -70,20 +70,23 @@ components:
     node: laptop
     ports:
       deviation: {{direction: in, type: Reading, topic: deviation}}
-      proposal: {{direction: out, type: Setpoint, topic: setpoint-plan}}
+      proposal: {{direction: out, type: Setpoint, topic: new-plan}}
+  # plan -> legitimate -> execute: the plan is proposed on the Legitimate gate's event
+  # new-plan (as a rap.PlanProposal/1 holding the Setpoint) and approved on its event
+  # verdict; execute acts only on approved set points.
   legitimate:
     stage: legitimate
     node: laptop
     doc: Checks each proposed set point before it may run.
     ports:
-      proposal: {{direction: in, type: Setpoint, topic: setpoint-plan}}
-      approved: {{direction: out, type: Setpoint, topic: approved-setpoint}}
+      proposal: {{direction: in, type: Setpoint, topic: new-plan}}
+      approved: {{direction: out, type: Setpoint, topic: verdict}}
   execute:
     stage: execute
     node: laptop
     doc: Acts only on set points the legitimate stage approved (the gate).
     ports:
-      approved: {{direction: in, type: Setpoint, topic: approved-setpoint}}
+      approved: {{direction: in, type: Setpoint, topic: verdict}}
       setpoint: {{direction: out, kind: data, type: Setpoint, topic: robot/setpoint}}
 """
 
@@ -177,9 +180,18 @@ def register(app: typer.Typer) -> None:
         out = Path(name)
         package = package_name(out.name)
         if out.exists() and any(out.iterdir()):
+            hint = (
+                f", or run 'rap generate {out}/model.yaml' to regenerate the package there"
+                if (out / "model.yaml").is_file()
+                else ""
+            )
+            raise _usage(f"{out} exists and is not empty - choose a new name{hint}")
+        taken = _taken(package)
+        if taken is not None:
             raise _usage(
-                f"{out} exists and is not empty - choose a new name, or run 'rap generate "
-                f"{out}/model.yaml' to regenerate a package there"
+                f"{name}: its Python package would be {package!r}, but that name is taken "
+                f"by {taken}; importing the package would find that instead - choose "
+                "another name"
             )
         if source:
             checked = _checked(list(source), fmt, root)
@@ -240,7 +252,7 @@ def register(app: typer.Typer) -> None:
         doc = _document(checked)
         first = model[0]
         out = output or (first.parent if first.is_file() else first)
-        pkg = package or package_name(out.resolve().name)
+        pkg = package or _existing_package(doc, out) or package_name(out.resolve().name)
         result = _generate(doc, out, pkg, deploy_only)
         target = out / "model.yaml"
         same = first.is_file() and target.exists() and target.resolve() == first.resolve()
@@ -258,6 +270,33 @@ def register(app: typer.Typer) -> None:
             )
             result.written.append("model.yaml")
         _report(result)
+
+
+def _existing_package(doc: PlanDocument, out: Path) -> str | None:
+    """The package an earlier generation wrote into ``out`` (its components' modules
+    name ``<package>.nodes.<module>:node`` and that folder is there): the folder's name
+    may have changed since (a clone, a copy)."""
+    for comp in doc.plan.components.values():
+        if comp.module is None:
+            continue
+        head, sep, _ = comp.module.partition(".nodes.")
+        if sep and head.isidentifier() and (out / head / "nodes").is_dir():
+            return head
+    return None
+
+
+def _taken(package: str) -> str | None:
+    """What already answers to ``package`` on import (a module of the standard library,
+    of RAP, of an installed distribution), or None."""
+    import importlib.util
+
+    try:
+        spec = importlib.util.find_spec(package)
+    except (ImportError, ValueError):
+        return None
+    if spec is None:
+        return None
+    return spec.origin or (list(spec.submodule_search_locations or []) or ["a namespace"])[0]
 
 
 def _with_modules(text: str, result: Generated) -> str:

@@ -813,7 +813,11 @@ CMD ["rap", "--help"]
 
 
 def _node_rows(plan: DeploymentPlan) -> list[str]:
-    rows = ["| compute node | address | listens (published) | connects to |", "|---|---|---|---|"]
+    rows = [
+        "| compute node | address | published ports (host address:port:container port) "
+        "| its router connects to |",
+        "|---|---|---|---|",
+    ]
     for name, spec in plan.compute_nodes.items():
         ports = ", ".join(i.publish for i in _listens(plan, name) if i.publish) or "-"
         connect = [resolve_endpoint(e, plan) for e in [*spec.connect, *plan.fabric.routers]]
@@ -858,13 +862,21 @@ own folder, `deploy/<node>/`, with:
 
 {chr(10).join(_node_rows(plan))}
 
+## 0. The machines' addresses
+
+The addresses above are the model's `address:` of each compute node; they are written
+into the Zenoh configs, the published ports and `extra_hosts`. Before deploying, put each
+machine's real address in `model.yaml` (under `compute_nodes:`) and run `rap generate
+model.yaml` again (with `--deploy-only` for a model whose Nodes come from wheels). For a
+trial on one machine, `rap up model.yaml --all` needs none of this.
+
 ## 1. RAP's wheels
 
 RAP's distributions are not on PyPI: the image installs them from `deploy/wheels/` only
 (`requirements-rap.lock`), and the third-party ones at the exact versions of
 `requirements.lock` from PyPI. In a checkout of RAP at the version the generator ran:
 
-    make wheels WHEELS_DIR=$PWD/deploy/wheels    # uv build --all-packages --wheel
+    make wheels WHEELS_DIR=<this folder>/deploy/wheels    # uv build --all-packages --wheel
 
 The versions were taken from the Python {lock.python} environment that ran the generator;
 the image uses `python:{lock.python}-slim` so that they fit.

@@ -108,6 +108,7 @@ def node_module(
         gate_imports.append("propose")
     if any(p.role == "judged" for p in cw.inputs):
         gate_imports.append("legitimate")
+        schema_imports.add("PlanProposal")
     if any(p.role == "approved" for p in cw.inputs):
         gate_imports.append("ApprovalGate")
 
@@ -223,6 +224,19 @@ def node_module(
         "    for name in State.__struct_fields__:",
         "        setattr(state, name, getattr(saved, name))",
     ]
+    if any(p.role == "judged" for p in cw.inputs):
+        out += [
+            "",
+            "",
+            "def breaks_constraints(plan: msgspec.Struct) -> str | None:",
+            '    """Why ``plan`` breaks its message\'s constraints (a Struct built in code is',
+            '    not validated; decoding it again is), or None."""',
+            "    try:",
+            "        msgspec.convert(msgspec.to_builtins(plan), type(plan))",
+            "    except msgspec.ValidationError as exc:",
+            '        return f"the plan breaks the model\'s constraints: {exc}"',
+            "    return None",
+        ]
     for key in cw.reads:
         out += [
             "",
@@ -269,12 +283,16 @@ def node_module(
             f"@legitimate(node, plan={plan_cls})",
             f"async def check(ctx: Context, proposal: PlanProposal[{plan_cls}]) -> str | None:",
             '    """Judge a proposed plan: None approves it, a string rejects it with that',
-            '    reason (an exception rejects it too)."""',
+            "    reason (an exception rejects it too). A plan that breaks the constraints of",
+            '    its message in the model is rejected before your checks run."""',
+            "    broken = breaks_constraints(proposal.plan)",
+            "    if broken is not None:",
+            "        return broken",
             *_region(
                 "check",
                 [
-                    "# placeholder: approves every well-formed plan; write the checks that",
-                    "# make a plan safe to run here",
+                    "# placeholder: approves every plan within the model's constraints;",
+                    "# write the checks that make a plan safe to run here",
                     "return None",
                 ],
                 "    ",

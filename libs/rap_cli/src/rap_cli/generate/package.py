@@ -26,7 +26,7 @@ from .deploy_files import DeployError, deploy_files
 from .messages import MessageNames, messages_module, samples_module
 from .names import identifier, unique
 from .nodes import node_module
-from .regions import RegionError, merge
+from .regions import RegionError, merge, regions
 from .tests import component_test, conftest, loop_test
 from .wiring import Wiring, generated, wire
 
@@ -85,6 +85,7 @@ def _pyproject(package: str, plan: DeploymentPlan) -> str:
             "",
             "[tool.pytest.ini_options]",
             'testpaths = ["tests"]',
+            'pythonpath = ["."]',
             'addopts = "-p no:cacheprovider"',
             "",
         ]
@@ -182,6 +183,8 @@ def generate_package(
         plan, w, files = _files(doc, package, source)
     except DeployError as exc:
         raise GenerateError(f"{doc.source}: {exc}") from None
+    if not deploy_only:
+        _refuse_unknown_types(doc, plan, w, package)
     if deploy_only:
         files = {k: v for k, v in files.items() if k.startswith("deploy/")}
         installed = providers(doc.plan)
@@ -204,8 +207,28 @@ def generate_package(
         if policy == "regions":
             try:
                 merged[rel] = merge(text, existing.get(rel), str(out / rel))
+                if rel in existing:
+                    gone = set(regions(existing[rel])) - set(regions(text))
+                    kept = [r for r in gone if any(x.strip() for x in regions(existing[rel])[r])]
+                    if kept:
+                        result.warnings.append(
+                            f"{rel}: region(s) {', '.join(sorted(kept))} no longer exist in "
+                            "the model (a port renamed or removed?): kept, commented out, at "
+                            "the end of the file - move the code where it belongs"
+                        )
             except RegionError as exc:
                 raise GenerateError(f"{exc}; nothing was written") from None
+    backup = out / ".rap" / "previous"
+    changed = [rel for rel in existing if existing[rel] != merged[rel]]
+    for rel in changed:
+        target = backup / rel
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_text(existing[rel], encoding="utf-8")
+    if changed:
+        result.warnings.append(
+            f"the previous version of each of the {len(changed)} rewritten file(s) with user "
+            f"regions is in {backup} (code outside the regions is not kept)"
+        )
     for rel, (text, policy) in files.items():
         path = out / rel
         if policy == "once" and path.exists():
@@ -226,6 +249,24 @@ def generate_package(
                 f"its check (region 'check' of {package}/nodes/{modules[name]}.py)"
             )
     return result
+
+
+def _refuse_unknown_types(doc: PlanDocument, plan: DeploymentPlan, w: Wiring, package: str) -> None:
+    """A port typed with a name the model does not define would become a handler of
+    empty events: refuse instead, naming every such port."""
+    names = MessageNames.of(plan, package)
+    bad = [
+        f"component {cw.name!r}, port {p.port!r}: type {p.type!r}"
+        for cw in w.components.values()
+        for p in [*cw.inputs, *cw.outputs]
+        if p.type is not None and names.wire(p.type) is None
+    ]
+    if bad:
+        raise GenerateError(
+            f"{doc.source}: {'; '.join(bad)} - neither a message of the model nor one of "
+            "RAP's wire types; fix the type (rap check shows where), then generate again; "
+            "nothing was written"
+        )
 
 
 def providers(plan: DeploymentPlan) -> list[str]:

@@ -242,7 +242,7 @@ def loop_test(wiring: Wiring, modules: dict[str, str], names: MessageNames, pack
         "    async with Harness(system=SYSTEM) as h:",
         "        await h.hold(open_service(KnowledgeConfig(system=SYSTEM), fabric=h.fabric))",
         f"        await h.start({', '.join(f'{m}.node' for m in mods)})",
-        *_checks("loop", body, f"all(m.FORWARD for m in ({', '.join(mods)},))"),
+        *_checks("loop", body, f"all(m.FORWARD for m in ({''.join(f'{m}, ' for m in mods)}))"),
         "        assert not h.rejections()",
         "",
     ]
