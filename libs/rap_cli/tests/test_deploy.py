@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from rap_cli.deploy import PYTHON, Paths, node_processes, resolve_endpoint, resolve_url
-from rap_schemas import PlanDocument
+from rap_schemas import PlanDocument, Stage
 from rap_schemas.plan import ComponentSpec, ComputeNode, DeploymentPlan, KnowledgeSpec, TrustSpec
 
 PLAN = DeploymentPlan(
@@ -17,7 +17,7 @@ PLAN = DeploymentPlan(
     knowledge=KnowledgeSpec(backend="redis", node="companion", url="redis://192.168.0.115:6379/2"),
     trust=TrustSpec(node="companion", specs=["specs/order.dsrv"]),
     components={
-        "m": ComponentSpec(module="ship.nodes.m:node", stage="monitor", node="companion"),
+        "m": ComponentSpec(module="ship.nodes.m:node", stage=Stage.MONITOR, node="companion"),
         "sim": ComponentSpec(
             external=True, node="deck", run=["{python}", "-m", "sim", "--system", "{system}"]
         ),

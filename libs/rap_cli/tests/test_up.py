@@ -21,7 +21,7 @@ from typing import Any
 import anyio
 import pytest
 from anyio.abc import Process
-from rap_cli.up import router_id
+from rap_cli.up import _zombie, router_id
 from rap_schemas import Pose2D, keys
 from rap_sdk.fabric import CONFIG_ENV
 from rap_sdk.testing import Harness, Record
@@ -475,3 +475,26 @@ def test_all_links_the_routers_into_one_graph(tmp_path: Path) -> None:
 
     alone = plan_run(doc, tmp_path / "m.yaml", ["c"], tmp_path)[0]
     assert alone.router["connect"]["endpoints"] == []
+
+
+@pytest.mark.zenoh
+async def test_processes_left_by_a_killed_rap_up_stop_a_new_one_until_rap_down(
+    tmp_path: Path,
+) -> None:
+    model = _model(tmp_path, ONE_NODE)
+    run_dir = model.parent / ".rap" / "probe"
+    async with rap_up(str(model)) as up:
+        await up.line("compute node a is up")
+        pids = _pids(run_dir, "a")
+        up.proc.kill()  # SIGKILL: rap up cannot stop its processes
+        await up.proc.wait()
+    assert not any(_gone(pid) for pid in pids.values())
+    again = await _rap("up", str(model))
+    assert again.returncode == 2, again
+    assert "an earlier rap up died without stopping its processes" in again.stderr
+    assert f"runner pid {pids['runner']}" in again.stderr
+    down = await _rap("down", str(model))
+    assert down.returncode == 0, down
+    assert "left behind" in down.stdout
+    # rap down waits until they have exited (a zombie whose parent is gone has)
+    assert all(_gone(pid) or _zombie(pid) for pid in pids.values())

@@ -369,6 +369,17 @@ def _same_process(pid: Any, identity: Any) -> bool:
     return now is not None and (not identity or not now or now == identity)
 
 
+def _left_behind(state: dict[str, Any] | None) -> list[tuple[str, int]]:
+    """The processes of a ``rap up`` that is gone but did not stop them (it was killed)."""
+    if state is None or state.get("state") == "stopped" or _running(state):
+        return []
+    return [
+        (str(c.get("name")), int(c["pid"]))
+        for c in state.get("children") or []
+        if isinstance(c, dict) and _same_process(c.get("pid"), c.get("identity"))
+    ]
+
+
 def _running(state: dict[str, Any] | None) -> bool:
     if state is None or state.get("state") == "stopped":
         return False
@@ -904,6 +915,14 @@ def up(
             _usage(
                 f"compute node {n} is already up (rap up pid {state['supervisor']['pid']}, "
                 f"{base / n / STATE_FILE}) - stop it first: rap down {model} --node {n}"
+            )
+        left = _left_behind(state)
+        if left:
+            _usage(
+                f"compute node {n}: an earlier rap up died without stopping its processes "
+                f"({', '.join(f'{name} pid {pid}' for name, pid in left)}) - stop them "
+                f"first: rap down {model} --node {n}"
+                + (f" --run-dir {run_dir}" if run_dir is not None else "")
             )
     try:
         runs = plan_run(doc, file, nodes, base, addresses=addresses, log_level=level, link=True)
