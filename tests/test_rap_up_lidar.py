@@ -19,11 +19,9 @@ from typing import Any
 
 import anyio
 import pytest
-from anyio.abc import Process
-from anyio.streams.buffered import BufferedByteReceiveStream
 from rap_schemas import Verdict, keys
 from rap_sdk.fabric import CONFIG_ENV, free_port
-from rap_sdk.testing import Harness, Record
+from rap_sdk.testing import Harness, OutputLines, Record
 
 pytestmark = [pytest.mark.anyio, pytest.mark.zenoh, pytest.mark.slow, pytest.mark.timeout(120)]
 
@@ -37,39 +35,6 @@ def _rap() -> str:
     rap = Path(sys.executable).with_name("rap")
     assert rap.exists(), f"{rap}: the rap command is not installed next to {sys.executable}"
     return str(rap)
-
-
-class Output:
-    """``rap up``'s output lines, as they come."""
-
-    def __init__(self) -> None:
-        self.lines: list[str] = []
-        self._arrived = anyio.Event()
-
-    async def pump(self, proc: Process) -> None:
-        assert proc.stdout is not None
-        stream = BufferedByteReceiveStream(proc.stdout)
-        while True:
-            try:
-                line = await stream.receive_until(b"\n", 1 << 16)
-            except (anyio.EndOfStream, anyio.IncompleteRead):
-                return
-            self.lines.append(line.decode(errors="replace"))
-            self._arrived.set()
-            self._arrived = anyio.Event()
-
-    async def until(self, text: str) -> None:
-        """Until a line holds ``text``."""
-        i = 0
-        while True:
-            arrived = self._arrived
-            if any(text in line for line in self.lines[i:]):
-                return
-            i = len(self.lines)
-            await arrived.wait()
-
-    def __str__(self) -> str:
-        return "\n".join(self.lines[-200:])
 
 
 def _approved(r: Record) -> bool:
@@ -96,17 +61,17 @@ async def test_rap_up_all_closes_the_loop_and_rap_down_stops_it(
     copy = tmp_path / "model.yaml"
     copy.write_text(text.replace("tcp/edge:7447", f"tcp/edge:{free_port()}"))
     model = str(copy)
-    out = Output()
     argv = [_rap(), "up", model, "--all", "--run-dir", str(run)]
     async with (
         await anyio.open_process(argv, stderr=subprocess.STDOUT) as up,
         anyio.create_task_group() as tg,
     ):
-        tg.start_soon(out.pump, up)
+        out = OutputLines(up)
+        tg.start_soon(out.pump)
         try:
             with anyio.fail_after(30):
                 for node in ("robot", "edge"):
-                    await out.until(f"compute node {node} is up")
+                    await out.line(f"compute node {node} is up")
             # a client of the robot's router, as the robot's own processes are
             monkeypatch.setenv(CONFIG_ENV, str(run / "robot" / "zenoh-client.json5"))
             async with Harness(system=SYSTEM, fabric="zenoh", timeout=30) as h:

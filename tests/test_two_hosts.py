@@ -37,8 +37,8 @@ import anyio
 import msgspec
 import pytest
 import yaml
-from anyio.abc import Process, TaskStatus
-from anyio.streams.buffered import BufferedByteReceiveStream
+from anyio.abc import TaskStatus
+from rap_sdk.testing import OutputLines
 
 REPO = Path(__file__).resolve().parents[1]
 MODEL = REPO / "examples/lidar_occlusion/model.yaml"
@@ -171,37 +171,6 @@ def hosts() -> Iterator[Hosts]:
 # -- output of other processes, line by line ------------------------------------------------
 
 
-class Lines:
-    """A process's output lines, as they come."""
-
-    def __init__(self) -> None:
-        self.lines: list[str] = []
-        self._arrived = anyio.Event()
-
-    async def pump(self, proc: Process) -> None:
-        assert proc.stdout is not None
-        stream = BufferedByteReceiveStream(proc.stdout)
-        while True:
-            try:
-                line = await stream.receive_until(b"\n", 1 << 16)
-            except (anyio.EndOfStream, anyio.IncompleteRead):
-                return
-            self.lines.append(line.decode(errors="replace"))
-            self._arrived.set()
-            self._arrived = anyio.Event()
-
-    async def first(self, pred: Callable[[str], bool], start: int = 0) -> int:
-        """The index of the first line from ``start`` on that satisfies ``pred``."""
-        i = start
-        while True:
-            arrived = self._arrived
-            for j in range(i, len(self.lines)):
-                if pred(self.lines[j]):
-                    return j
-            i = len(self.lines)
-            await arrived.wait()
-
-
 @dataclass(frozen=True, slots=True)
 class Seen:
     """One line of the observer."""
@@ -216,7 +185,7 @@ class Seen:
 class Watch:
     """What the observer saw."""
 
-    def __init__(self, lines: Lines) -> None:
+    def __init__(self, lines: OutputLines) -> None:
         self.lines = lines
 
     @property
@@ -293,15 +262,15 @@ async def _rap_up(
     ``rap down`` on exit (it must stop it)."""
     argv = [*("ip", "netns", "exec", ns), _rap(), "up", str(model), "--node", node]
     argv += ["--address", f"edge={edge_ip}", "--run-dir", str(run_dir)]
-    out = Lines()
     async with (
         await anyio.open_process(argv, stderr=subprocess.STDOUT) as proc,
         anyio.create_task_group() as tg,
     ):
-        tg.start_soon(out.pump, proc)
+        out = OutputLines(proc)
+        tg.start_soon(out.pump)
         try:
             with anyio.fail_after(30):
-                await out.first(lambda line: f"compute node {node} is up" in line)
+                await out.line(f"compute node {node} is up")
             yield
             down = [_rap(), "down", str(model), "--node", node, "--run-dir", str(run_dir)]
             res = await anyio.run_process(down, check=False, stderr=subprocess.STDOUT)
@@ -323,14 +292,14 @@ async def _rap_up(
 @contextlib.asynccontextmanager
 async def _observer(ns: str, endpoint: str, stderr: Path) -> AsyncIterator[Watch]:
     """The observer in namespace ``ns``, a client of the router at ``endpoint``."""
-    lines = Lines()
     argv = [*("ip", "netns", "exec", ns), sys.executable, __file__, endpoint, SYSTEM]
     with stderr.open("wb") as err:
         async with (
             await anyio.open_process(argv, stderr=err) as proc,
             anyio.create_task_group() as tg,
         ):
-            tg.start_soon(lines.pump, proc)
+            lines = OutputLines(proc, timeout=600)  # the callers' deadlines rule
+            tg.start_soon(lines.pump)
             try:
                 watch = Watch(lines)
                 with anyio.fail_after(30):

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import re
 import signal
 import subprocess
 import sys
@@ -14,8 +13,8 @@ from pathlib import Path
 
 import anyio
 import pytest
-from anyio.abc import Process
 from rap_sdk.fabric import free_port
+from rap_sdk.testing import OutputLines
 
 pytestmark = pytest.mark.anyio
 
@@ -40,45 +39,17 @@ def _config(path: Path, listen: str, connect: list[str]) -> Path:
     return path
 
 
-class Router:
-    def __init__(self, proc: Process) -> None:
-        self.proc = proc
-        self.lines: list[str] = []
-        self._more = anyio.Event()
-
-    async def read(self) -> None:
-        assert self.proc.stdout is not None
-        buf = b""
-        async for chunk in self.proc.stdout:
-            *lines, buf = (buf + chunk).split(b"\n")
-            self.lines += [line.decode(errors="replace") for line in lines]
-            self._more.set()
-            self._more = anyio.Event()
-
-    async def line(self, pattern: str, after: int = 0) -> tuple[int, re.Match[str]]:
-        """The first line from ``after`` on that matches ``pattern`` (a regex)."""
-        i = after
-        with anyio.fail_after(TIMEOUT):
-            while True:
-                for j in range(i, len(self.lines)):
-                    if (m := re.search(pattern, self.lines[j])) is not None:
-                        return j, m
-                i = len(self.lines)
-                assert self.proc.returncode is None, "\n".join(self.lines)
-                await self._more.wait()
-
-
 @contextlib.asynccontextmanager
-async def router(config: Path) -> AsyncIterator[Router]:
+async def router(config: Path) -> AsyncIterator[OutputLines]:
     proc = await anyio.open_process(
         [sys.executable, "-m", "rap_cli.router", "--config", str(config)],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
     )
-    r = Router(proc)
+    r = OutputLines(proc, timeout=TIMEOUT)
     try:
         async with anyio.create_task_group() as tg:
-            tg.start_soon(r.read)
+            tg.start_soon(r.pump)
             try:
                 yield r
             finally:
@@ -99,23 +70,23 @@ async def test_a_cut_link_is_logged_lost_and_restored(tmp_path: Path) -> None:
     a_conf = _config(tmp_path / "a.json5", f"tcp/127.0.0.1:{pa}", [])
     b_conf = _config(tmp_path / "b.json5", f"tcp/127.0.0.1:{pb}", [f"tcp/127.0.0.1:{pa}"])
     async with router(a_conf) as a:
-        _, m = await a.line(rf"router (\w+) listening on tcp/127\.0\.0\.1:{pa}")
+        _, m = await a.match(rf"router (\w+) listening on tcp/127\.0\.0\.1:{pa}")
         a_zid = m[1]
         async with router(b_conf) as b:
-            _, m = await b.line(rf"router (\w+) listening on .*; connecting to tcp/127.0.0.1:{pa}")
+            _, m = await b.match(rf"router (\w+) listening on .*; connecting to tcp/127.0.0.1:{pa}")
             b_zid = m[1]
-            up, _ = await a.line(rf"link to {b_zid} up \(router; 1 link\(s\) up\)")
-            await b.line(rf"link to {a_zid} up \(router")
+            up, _ = await a.match(rf"link to {b_zid} up \(router; 1 link\(s\) up\)")
+            await b.match(rf"link to {a_zid} up \(router")
             b.proc.send_signal(signal.SIGSTOP)  # b hangs: a's lease on the link runs out
-            lost, _ = await a.line(rf"link to {b_zid} lost \(router; 0 link\(s\) left\)", up)
+            lost, _ = await a.match(rf"link to {b_zid} lost \(router; 0 link\(s\) left\)", after=up)
             assert "WARNING" in a.lines[lost]
             b.proc.send_signal(signal.SIGCONT)
-            await a.line(rf"link to {b_zid} restored \(router; 1 link\(s\) up\)", lost)
+            await a.match(rf"link to {b_zid} restored \(router; 1 link\(s\) up\)", after=lost)
             b.proc.terminate()
             with anyio.fail_after(TIMEOUT):
                 assert await b.proc.wait() == 0, "\n".join(b.lines)
             await b.line("router stopped")
-        await a.line(rf"link to {b_zid} lost", lost + 1)
+        await a.match(rf"link to {b_zid} lost", after=lost + 1)
         a.proc.send_signal(signal.SIGINT)
         with anyio.fail_after(TIMEOUT):
             assert await a.proc.wait() == 0, "\n".join(a.lines)

@@ -20,11 +20,10 @@ from typing import Any
 
 import anyio
 import pytest
-from anyio.abc import Process
 from rap_cli.up import _zombie, router_id
 from rap_schemas import Pose2D, keys
 from rap_sdk.fabric import CONFIG_ENV
-from rap_sdk.testing import Harness, Record
+from rap_sdk.testing import Harness, OutputLines, Record
 
 pytestmark = pytest.mark.anyio
 
@@ -139,41 +138,11 @@ async def _rap(*args: str, env: dict[str, str] | None = None) -> subprocess.Comp
     )
 
 
-class RapUp:
-    """A running ``rap up`` and the lines of its output so far."""
-
-    def __init__(self, proc: Process) -> None:
-        self.proc = proc
-        self.lines: list[str] = []
-        self._more = anyio.Event()
-
-    async def read(self) -> None:
-        assert self.proc.stdout is not None
-        buf = b""
-        async for chunk in self.proc.stdout:
-            *lines, buf = (buf + chunk).split(b"\n")
-            self.lines += [line.decode(errors="replace") for line in lines]
-            self._more.set()
-            self._more = anyio.Event()
-
-    async def line(self, *parts: str, after: int = 0, timeout: float = UP_TIMEOUT) -> int:
-        """The index of the first line from ``after`` on that holds every one of ``parts``."""
-        i = after
-        with anyio.fail_after(timeout):
-            while True:
-                for j in range(i, len(self.lines)):
-                    if all(p in self.lines[j] for p in parts):
-                        return j
-                i = len(self.lines)
-                if self.proc.returncode is not None:
-                    raise AssertionError(
-                        f"rap up exited ({self.proc.returncode}) before printing {parts}:\n"
-                        + "\n".join(self.lines)
-                    )
-                await self._more.wait()
+class RapUp(OutputLines):
+    """A running ``rap up`` and its output lines so far."""
 
     def output(self) -> str:
-        return "\n".join(self.lines)
+        return str(self)
 
 
 @contextlib.asynccontextmanager
@@ -181,10 +150,10 @@ async def rap_up(*args: str) -> AsyncIterator[RapUp]:
     proc = await anyio.open_process(
         [RAP, "up", *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=_env()
     )
-    up = RapUp(proc)
+    up = RapUp(proc, timeout=UP_TIMEOUT)
     try:
         async with anyio.create_task_group() as tg:
-            tg.start_soon(up.read)
+            tg.start_soon(up.pump)
             try:
                 yield up
             finally:

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import shutil
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -39,6 +40,7 @@ __all__ = [
     "REQUIRE_SERVICES",
     "DelayedKnowledgeWrites",
     "Harness",
+    "OutputLines",
     "Record",
     "free_port",
     "require_binary",
@@ -300,3 +302,79 @@ class Harness:
             for r in self.of(keys.Kind.LOG, node)
             if r.envelope is not None and r.envelope.type == Rejection.TYPE
         ]
+
+
+class OutputLines:
+    r"""What a child process writes on its stdout, line by line as it comes, to await
+    a line in tests of programs (``rap up``, a router, a service's CLI)::
+
+        proc = await anyio.open_process([...], stdout=subprocess.PIPE)
+        out = OutputLines(proc)
+        tg.start_soon(out.pump)
+        at = await out.line("is up")                 # every part in one line
+        _, m = await out.match(r"router (\w+) listening", after=at)
+
+    Awaiting a line the process never writes fails when it exits (with its output), or
+    on the timeout."""
+
+    def __init__(self, proc: Any, *, timeout: float = 30.0) -> None:
+        self.proc = proc
+        self.timeout = timeout
+        self.lines: list[str] = []
+        self._arrived = anyio.Event()
+        self._ended = False
+
+    async def pump(self) -> None:
+        """Read the process's output until it ends (run it in a task)."""
+        assert self.proc.stdout is not None, "start the process with stdout=subprocess.PIPE"
+        buf = b""
+        try:
+            async for chunk in self.proc.stdout:
+                *lines, buf = (buf + chunk).split(b"\n")
+                self.lines += [line.decode(errors="replace") for line in lines]
+                self._wake()
+        finally:
+            if buf:
+                self.lines.append(buf.decode(errors="replace"))
+            self._ended = True
+            self._wake()
+
+    def _wake(self) -> None:
+        self._arrived.set()
+        self._arrived = anyio.Event()
+
+    async def first(
+        self, pred: Callable[[str], bool], *, after: int = 0, timeout: float | None = None
+    ) -> int:
+        """The index of the first line from ``after`` on that satisfies ``pred``."""
+        i = after
+        with anyio.fail_after(self.timeout if timeout is None else timeout):
+            while True:
+                arrived = self._arrived
+                for j in range(i, len(self.lines)):
+                    if pred(self.lines[j]):
+                        return j
+                i = len(self.lines)
+                if self._ended:
+                    raise AssertionError(
+                        f"the process ended (exit code {self.proc.returncode}) without that "
+                        f"line; its output:\n{self}"
+                    )
+                await arrived.wait()
+
+    async def line(self, *parts: str, after: int = 0, timeout: float | None = None) -> int:
+        """The index of the first line from ``after`` on that holds every one of ``parts``."""
+        return await self.first(lambda s: all(p in s for p in parts), after=after, timeout=timeout)
+
+    async def match(
+        self, pattern: str, *, after: int = 0, timeout: float | None = None
+    ) -> tuple[int, re.Match[str]]:
+        """The first line from ``after`` on that matches regex ``pattern``, and the match."""
+        rx = re.compile(pattern)
+        at = await self.first(lambda s: rx.search(s) is not None, after=after, timeout=timeout)
+        found = rx.search(self.lines[at])
+        assert found is not None
+        return at, found
+
+    def __str__(self) -> str:
+        return "\n".join(self.lines[-200:])
