@@ -64,13 +64,20 @@ def _forward(cw: ComponentWiring, names: MessageNames, incoming: str | None) -> 
         for key in cw.spec.writes
         if not any(o.channel.knowledge == key for o in cw.outputs)
     ]
+    return lines + _send_all(cw, names, incoming, "msg")
+
+
+def _send_all(cw: ComponentWiring, names: MessageNames, given: str | None, expr: str) -> list[str]:
+    """A call of every ``send_<port>``: with ``expr`` (of class ``given``) where the
+    output takes that class, an example message otherwise."""
+    lines = []
     for o in cw.outputs:
         cls = _cls(o, names)
         fn = f"send_{identifier(o.port)}"
         if cls is None:
             lines.append(f"await {fn}(ctx)")
-        elif incoming == cls:
-            lines.append(f"await {fn}(ctx, msg)")
+        elif cls == given:
+            lines.append(f"await {fn}(ctx, {expr})")
         else:
             lines.append(f"await {fn}(ctx, sample({cls}))")
     return lines
@@ -300,16 +307,7 @@ def node_module(
         ]
     approved = [p for p in cw.inputs if p.role == "approved"]
     if approved:
-        body: list[str] = []
-        for o in cw.outputs:
-            cls = _cls(o, names)
-            fn = f"send_{identifier(o.port)}"
-            if cls is None:
-                body.append(f"await {fn}(ctx)")
-            elif cls == plan_cls:
-                body.append(f"await {fn}(ctx, proposal.plan)")
-            else:
-                body.append(f"await {fn}(ctx, sample({cls}))")
+        body = _send_all(cw, names, plan_cls, "proposal.plan")
         out += [
             "",
             "",
