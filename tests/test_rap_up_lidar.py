@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -21,7 +20,7 @@ import anyio
 import pytest
 from rap_schemas import Verdict, keys
 from rap_sdk.fabric import CONFIG_ENV, free_port
-from rap_sdk.testing import Harness, OutputLines, Record
+from rap_sdk.testing import Harness, OutputLines, Record, stop_process
 
 pytestmark = [pytest.mark.anyio, pytest.mark.zenoh, pytest.mark.slow, pytest.mark.timeout(120)]
 
@@ -89,14 +88,7 @@ async def test_rap_up_all_closes_the_loop_and_rap_down_stops_it(
             with anyio.fail_after(30):
                 assert await up.wait() == 0, str(out)
         finally:
-            with anyio.CancelScope(shield=True):
-                if up.returncode is None:  # a failure: it still stops what it started
-                    up.terminate()
-                    with anyio.move_on_after(30):
-                        await up.wait()
-                if up.returncode is None:
-                    up.send_signal(signal.SIGKILL)
-                    await up.wait()
+            await stop_process(up)  # a failure: it still stops what it started
     # what ran: each node's router, knowledge on the edge, the simulator on the robot
     names = {n: {c["name"] for c in s["children"]} for n, s in states.items()}
     assert names == {

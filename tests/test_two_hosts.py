@@ -38,7 +38,7 @@ import msgspec
 import pytest
 import yaml
 from anyio.abc import TaskStatus
-from rap_sdk.testing import OutputLines
+from rap_sdk.testing import OutputLines, stop_process
 
 REPO = Path(__file__).resolve().parents[1]
 MODEL = REPO / "examples/lidar_occlusion/model.yaml"
@@ -278,15 +278,8 @@ async def _rap_up(
             with anyio.fail_after(30):
                 assert await proc.wait() == 0, "\n".join(out.lines[-50:])
         finally:
-            with anyio.CancelScope(shield=True):
-                if proc.returncode is None:  # a failure: it still stops what it started
-                    proc.terminate()
-                    with anyio.move_on_after(30):
-                        await proc.wait()
-                if proc.returncode is None:
-                    proc.send_signal(signal.SIGKILL)
-                    await proc.wait()
-                tg.cancel_scope.cancel()
+            await stop_process(proc)  # a failure: it still stops what it started
+            tg.cancel_scope.cancel()
 
 
 @contextlib.asynccontextmanager
@@ -306,12 +299,8 @@ async def _observer(ns: str, endpoint: str, stderr: Path) -> AsyncIterator[Watch
                     await watch.first(lambda s: s.kind == "ready", 0.0)
                 yield watch
             finally:
-                with anyio.CancelScope(shield=True):
-                    if proc.returncode is None:
-                        proc.terminate()
-                    with anyio.move_on_after(10):
-                        await proc.wait()
-                    tg.cancel_scope.cancel()
+                await stop_process(proc, grace=10)
+                tg.cancel_scope.cancel()
 
 
 # -- what the routers logged ------------------------------------------------------------------

@@ -23,7 +23,7 @@ import pytest
 from rap_cli.up import _zombie, router_id
 from rap_schemas import Pose2D, keys
 from rap_sdk.fabric import CONFIG_ENV
-from rap_sdk.testing import Harness, OutputLines, Record
+from rap_sdk.testing import Harness, OutputLines, Record, stop_process
 
 pytestmark = pytest.mark.anyio
 
@@ -157,14 +157,7 @@ async def rap_up(*args: str) -> AsyncIterator[RapUp]:
             try:
                 yield up
             finally:
-                with anyio.CancelScope(shield=True):
-                    if proc.returncode is None:  # the test failed: do not leave it running
-                        proc.terminate()
-                        with anyio.move_on_after(20):
-                            await proc.wait()
-                        if proc.returncode is None:
-                            proc.kill()
-                            await proc.wait()
+                await stop_process(proc, grace=20)  # the test failed: do not leave it running
                 tg.cancel_scope.cancel()
     finally:
         await proc.aclose()

@@ -9,10 +9,11 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated, NoReturn
+from typing import Annotated
 
 import typer
 
+from .cli import FAILED, OK, USAGE, format_option, usage
 from .designs import FORMATS, DesignError, Format, checked_import, detect, import_design, load
 from .diagnostics import Diagnostic
 from .exporters.aadl import export_aadl, write_aadl
@@ -39,7 +40,6 @@ app.add_typer(import_app, name="import")
 export_app = typer.Typer(help="Write a system model in another language.", no_args_is_help=True)
 app.add_typer(export_app, name="export")
 
-OK, WRONG, UNUSABLE = 0, 1, 2
 
 ModelArg = Annotated[
     list[Path],
@@ -75,25 +75,11 @@ def _root() -> None:
     their packages and run them."""
 
 
-def _format(value: str | None) -> Format | None:
-    if value is None:
-        return None
-    for f in FORMATS:
-        if f == value:
-            return f
-    _usage(f"--format {value!r} is not one of {', '.join(FORMATS)} - use one of them")
-
-
 def _load(paths: list[Path], fmt: str | None = None, root: str | None = None) -> CheckedModel:
     try:
-        return load(paths, _format(fmt), root=root)
+        return load(paths, format_option(fmt), root=root)
     except DesignError as exc:
-        _usage(str(exc))
-
-
-def _usage(message: str) -> NoReturn:
-    typer.echo(f"rap: error: {message}", err=True)
-    raise typer.Exit(UNUSABLE)
+        usage(str(exc))
 
 
 def _counts(diags: list[Diagnostic]) -> str:
@@ -112,9 +98,9 @@ def check(model: ModelArg, fmt: FormatOpt = None, root: RootOpt = None) -> None:
     for d in checked.diagnostics:
         typer.echo(d)
     if not checked.readable:
-        raise typer.Exit(UNUSABLE)
+        raise typer.Exit(USAGE)
     typer.echo(f"{checked.source}: {_counts(checked.diagnostics)}")
-    raise typer.Exit(OK if checked.ok else WRONG)
+    raise typer.Exit(OK if checked.ok else FAILED)
 
 
 @model_app.command("show")
@@ -136,8 +122,8 @@ def show(
     else:
         _print_view(view)
     if not checked.readable:
-        raise typer.Exit(UNUSABLE)
-    raise typer.Exit(OK if checked.ok else WRONG)
+        raise typer.Exit(USAGE)
+    raise typer.Exit(OK if checked.ok else FAILED)
 
 
 def _print_view(view: dict[str, object]) -> None:
@@ -189,14 +175,14 @@ def _import(fmt: Format, paths: list[Path], output: Path | None, root: str | Non
         _, files = detect(paths, fmt)
         imported = import_design(fmt, files, root=root)
     except DesignError as exc:
-        _usage(str(exc))
+        usage(str(exc))
     checked = checked_import(imported, ", ".join(map(str, paths)))
     for d in checked.diagnostics:
         typer.echo(d, err=True)
     plan = checked.plan
     if plan is None or not checked.readable:
         typer.echo(f"rap: nothing imported: {_counts(checked.diagnostics)}", err=True)
-        raise typer.Exit(UNUSABLE)
+        raise typer.Exit(USAGE)
     header = (
         f"Imported by `rap import {fmt}` from {len(files)} file(s): "
         + " ".join(f.name for f in files[:8])
@@ -212,7 +198,7 @@ def _import(fmt: Format, paths: list[Path], output: Path | None, root: str | Non
             output.parent.mkdir(parents=True, exist_ok=True)
             output.write_text(text, encoding="utf-8")
         except OSError as exc:
-            _usage(f"{output}: cannot write the model ({exc.strerror}) - choose another path")
+            usage(f"{output}: cannot write the model ({exc.strerror}) - choose another path")
     where = output if output is not None else "standard output"
     typer.echo(
         f"{where}: {len(plan.components)} component(s), {len(plan.messages)} message(s), "
@@ -220,7 +206,7 @@ def _import(fmt: Format, paths: list[Path], output: Path | None, root: str | Non
         f"connection(s); {_counts(checked.diagnostics)}",
         err=True,
     )
-    raise typer.Exit(OK if checked.ok else WRONG)
+    raise typer.Exit(OK if checked.ok else FAILED)
 
 
 @import_app.command("aadl")
@@ -265,14 +251,14 @@ def export_aadl_cmd(
     for d in checked.diagnostics:
         typer.echo(d, err=True)
     if not checked.readable:
-        raise typer.Exit(UNUSABLE)
+        raise typer.Exit(USAGE)
     if checked.plan is None or not checked.ok:
         typer.echo(f"rap: not exported: {_counts(checked.diagnostics)}", err=True)
-        raise typer.Exit(WRONG)
+        raise typer.Exit(FAILED)
     try:
         written = write_aadl(checked.plan, output)
     except OSError as exc:
-        _usage(f"{output}: cannot write there ({exc.strerror}) - choose another folder")
+        usage(f"{output}: cannot write there ({exc.strerror}) - choose another folder")
     root_impl = export_aadl(checked.plan).root
     typer.echo(f"wrote {len(written)} files to {output} (root system {root_impl})")
     raise typer.Exit(OK)

@@ -23,6 +23,7 @@ components with a ``module:``, and each component with ``run:`` as its own proce
 
 from __future__ import annotations
 
+import hashlib
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -43,6 +44,7 @@ __all__ = [
     "resolve_endpoint",
     "resolve_url",
     "router_config",
+    "router_id",
 ]
 
 PYTHON = "{python}"
@@ -151,27 +153,39 @@ def _zenoh_base(mode: str) -> dict[str, Any]:
     }
 
 
+def router_id(system: str, node: str) -> str:
+    """The Zenoh id of compute node ``node``'s router: the same at every start, so that a
+    router restarted is known again (its neighbours log the link as restored)."""
+    return hashlib.sha256(f"rap/{system}/{node}".encode()).hexdigest()[:32]
+
+
 def router_config(
     plan: DeploymentPlan,
     node: str,
     *,
     local: Sequence[str],
     addresses: Mapping[str, str] | None = None,
+    listen: Sequence[str] | None = None,
 ) -> dict[str, Any]:
-    """The Zenoh config of ``node``'s router: it listens on ``local`` (where the node's
-    clients connect) and the node's ``listen`` endpoints, and connects to its ``connect``
-    endpoints and the model's ``fabric.routers`` (its own listen endpoints excepted).
-    Endpoints naming a compute node are resolved (:func:`resolve_endpoint`)."""
+    """The Zenoh config of ``node``'s router, with a fixed id (:func:`router_id`): it
+    listens on ``local`` (where the node's clients connect) and the node's ``listen``
+    endpoints, and connects to its ``connect`` endpoints and the model's
+    ``fabric.routers`` (its own listen endpoints excepted). Endpoints naming a compute
+    node are resolved (:func:`resolve_endpoint`). ``listen``: the node's listen
+    endpoints as the router binds them, when that differs from the model's resolved
+    ones (inside a container: every interface)."""
     spec = plan.compute_nodes[node]
-    listen = [*local, *(e for e in spec.listen if e not in local)]
-    own = set(listen) | {resolve_endpoint(e, plan, addresses) for e in spec.listen}
+    mine = [resolve_endpoint(e, plan, addresses) for e in spec.listen]
+    binds = list(dict.fromkeys([*local, *(mine if listen is None else listen)]))
+    own = set(binds) | set(mine)
     connect: list[str] = []
     for e in [*spec.connect, *plan.fabric.routers]:
         r = resolve_endpoint(e, plan, addresses)
         if r not in own and r not in connect and e not in spec.listen:
             connect.append(r)
     conf = _zenoh_base("router")
-    conf["listen"] = {"endpoints": listen}
+    conf["id"] = router_id(plan.system, node)
+    conf["listen"] = {"endpoints": binds}
     # a router keeps trying the routers it connects to: a link cut and restored heals
     conf["connect"] = {
         "endpoints": connect,

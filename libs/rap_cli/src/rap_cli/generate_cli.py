@@ -8,14 +8,13 @@ from typing import Annotated
 import typer
 from rap_schemas import PlanDocument, PlanError
 
-from .designs import FORMATS, DesignError, Format, load
+from .cli import USAGE, format_option, usage
+from .designs import DesignError, load
 from .generate.names import package_name
 from .generate.package import Generated, GenerateError, generate_package, write_model
 from .model_io import CheckedModel
 
 __all__ = ["STARTER", "register"]
-
-UNUSABLE = 2
 
 STARTER = """\
 # The system model of {name}: what runs where, and how the parts talk.
@@ -91,29 +90,15 @@ components:
 """
 
 
-def _usage(message: str) -> typer.Exit:
-    typer.echo(f"rap: error: {message}", err=True)
-    return typer.Exit(UNUSABLE)
-
-
-def _format(value: str | None) -> Format | None:
-    if value is None:
-        return None
-    for f in FORMATS:
-        if f == value:
-            return f
-    raise _usage(f"--format {value!r} is not one of {', '.join(FORMATS)} - use one of them")
-
-
 def _checked(paths: list[Path], fmt: str | None, root: str | None) -> CheckedModel:
     try:
-        checked = load(paths, _format(fmt), root=root)
+        checked = load(paths, format_option(fmt), root=root)
     except DesignError as exc:
-        raise _usage(str(exc)) from None
+        usage(str(exc))
     for d in checked.diagnostics:
         typer.echo(d, err=True)
     if not checked.readable or checked.plan is None:
-        raise typer.Exit(UNUSABLE)
+        raise typer.Exit(USAGE)
     errors = sum(d.severity == "error" for d in checked.diagnostics)
     if errors:
         typer.echo(
@@ -130,18 +115,16 @@ def _document(checked: CheckedModel) -> PlanDocument:
     try:
         return PlanDocument.from_plan(checked.plan, checked.source)
     except PlanError as exc:
-        raise _usage(f"{exc} - fix the model, then generate again") from None
+        usage(f"{exc} - fix the model, then generate again")
 
 
 def _generate(doc: PlanDocument, out: Path, package: str, deploy_only: bool = False) -> Generated:
     try:
         return generate_package(doc, out, package=package, deploy_only=deploy_only)
     except GenerateError as exc:
-        raise _usage(str(exc)) from None
+        usage(str(exc))
     except OSError as exc:
-        raise _usage(
-            f"{out}: cannot write there ({exc.strerror or exc}) - choose another folder"
-        ) from None
+        usage(f"{out}: cannot write there ({exc.strerror or exc}) - choose another folder")
 
 
 def _report(result: Generated) -> None:
@@ -185,10 +168,10 @@ def register(app: typer.Typer) -> None:
                 if (out / "model.yaml").is_file()
                 else ""
             )
-            raise _usage(f"{out} exists and is not empty - choose a new name{hint}")
+            usage(f"{out} exists and is not empty - choose a new name{hint}")
         taken = _taken(package)
         if taken is not None:
-            raise _usage(
+            usage(
                 f"{name}: its Python package would be {package!r}, but that name is taken "
                 f"by {taken}; importing the package would find that instead - choose "
                 "another name"

@@ -21,7 +21,6 @@ process in reverse start order (SIGTERM, then SIGKILL after a grace period).
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import json
 import logging
 import os
@@ -33,13 +32,14 @@ import time
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Annotated, Any, NoReturn
+from typing import IO, Annotated, Any
 
 import anyio
 import typer
 from anyio.abc import Process, TaskGroup
 from rap_schemas import DeploymentPlan, PlanDocument, PlanError, keys, load_plan
 
+from .cli import FAILED, OK, USAGE, failed, usage
 from .deploy import (
     CONFIG_ENV,
     Paths,
@@ -48,8 +48,8 @@ from .deploy import (
     knowledge_node,
     node_processes,
     render_zenoh,
-    resolve_endpoint,
     router_config,
+    router_id,
 )
 
 __all__ = [
@@ -62,7 +62,6 @@ __all__ = [
     "router_id",
 ]
 
-OK, FAILED, USAGE = 0, 1, 2
 STATE_FILE = "up.json"
 BACKOFF_FIRST = 0.5
 BACKOFF_MAX = 30.0
@@ -96,16 +95,6 @@ RunDirOpt = Annotated[
 # -- errors ------------------------------------------------------------------------------
 
 
-def _usage(message: str) -> NoReturn:
-    typer.echo(f"rap: error: {message}", err=True)
-    raise typer.Exit(USAGE)
-
-
-def _failed(message: str) -> NoReturn:
-    typer.echo(f"rap: error: {message}", err=True)
-    raise typer.Exit(FAILED)
-
-
 # -- the model and what to run -------------------------------------------------------------
 
 
@@ -114,7 +103,7 @@ def _load(model: Path) -> tuple[Path, PlanDocument]:
     try:
         doc = load_plan(file)
     except PlanError as exc:
-        _usage(str(exc))
+        usage(str(exc))
     return file.resolve(), doc
 
 
@@ -127,7 +116,7 @@ def _check_nodes(doc: PlanDocument, nodes: Iterable[str], option: str = "--node"
     out: list[str] = []
     for node in nodes:
         if node not in doc.plan.compute_nodes:
-            _usage(
+            usage(
                 f"{doc.where(('compute_nodes',), key=True)}: {option} {node!r} is not a compute "
                 f"node of the model - use one of: {', '.join(names)}"
             )
@@ -142,7 +131,7 @@ def _one_node(doc: PlanDocument, node: str | None) -> str:
     names = list(doc.plan.compute_nodes)
     if len(names) == 1:
         return names[0]
-    _usage(
+    usage(
         f"{doc.source}: the model has {len(names)} compute nodes ({', '.join(names)}) - "
         "choose one with --node NAME"
     )
@@ -153,14 +142,14 @@ def _addresses(doc: PlanDocument, given: Sequence[str]) -> dict[str, str]:
     for item in given:
         node, sep, host = item.partition("=")
         if not sep or not node.strip() or not host.strip():
-            _usage(f"--address {item!r} is not NODE=HOST - write e.g. --address edge=10.0.0.2")
+            usage(f"--address {item!r} is not NODE=HOST - write e.g. --address edge=10.0.0.2")
         out[_check_nodes(doc, [node.strip()], "--address")[0]] = host.strip()
     return out
 
 
 def _log_level(text: str) -> str:
     if logging.getLevelNamesMapping().get(text.upper()) is None:
-        _usage(f"--log-level {text!r} is not a logging level - use DEBUG, INFO, WARNING or ERROR")
+        usage(f"--log-level {text!r} is not a logging level - use DEBUG, INFO, WARNING or ERROR")
     return text.upper()
 
 
@@ -224,11 +213,6 @@ def plan_run(
         paths = Paths.local(model, run_dir, node)
         local = f"tcp/127.0.0.1:{port}"
         conf = router_config(plan, node, local=[local], addresses=addresses)
-        listen = conf["listen"]["endpoints"]
-        conf["listen"]["endpoints"] = list(
-            dict.fromkeys(resolve_endpoint(e, plan, addresses) for e in listen)
-        )
-        conf["id"] = router_id(plan.system, node)
         procs = node_processes(
             doc, node, paths=paths, system=plan.system, log_level=log_level, addresses=addresses
         )
@@ -246,12 +230,6 @@ def plan_run(
     if link and len(runs) > 1:
         _link(plan, runs)
     return runs
-
-
-def router_id(system: str, node: str) -> str:
-    """The Zenoh id of compute node ``node``'s router: the same at every start, so that a
-    router restarted is known again (its neighbours log the link as restored)."""
-    return hashlib.sha256(f"rap/{system}/{node}".encode()).hexdigest()[:32]
 
 
 def _link(plan: DeploymentPlan, runs: list[NodeRun]) -> None:
@@ -328,13 +306,13 @@ def read_state(path: Path) -> dict[str, Any] | None:
     except FileNotFoundError:
         return None
     except OSError as exc:
-        _usage(f"{path}: cannot read it ({exc.strerror}) - check its permissions")
+        usage(f"{path}: cannot read it ({exc.strerror}) - check its permissions")
     try:
         state = json.loads(text)
     except ValueError as exc:
-        _usage(f"{path}: not a rap up state file ({exc}) - delete it if no rap up runs")
+        usage(f"{path}: not a rap up state file ({exc}) - delete it if no rap up runs")
     if not isinstance(state, dict):
-        _usage(f"{path}: not a rap up state file - delete it if no rap up runs")
+        usage(f"{path}: not a rap up state file - delete it if no rap up runs")
     return state
 
 
@@ -894,7 +872,7 @@ def up(
     file, doc = _load(model)
     plan = doc.plan
     if all_nodes and node:
-        _usage("give --node or --all, not both")
+        usage("give --node or --all, not both")
     if all_nodes:
         nodes = list(plan.compute_nodes)
     elif node:
@@ -906,19 +884,19 @@ def up(
         addresses = {n: addresses.get(n, "127.0.0.1") for n in plan.compute_nodes}
     level = _log_level(log_level)
     if grace < 0:
-        _usage(f"--grace {grace:g}: give a number of seconds >= 0")
+        usage(f"--grace {grace:g}: give a number of seconds >= 0")
     base = (run_dir or _default_run_dir(file, plan)).resolve()
     for n in nodes:
         state = read_state(base / n / STATE_FILE)
         if _running(state):
             assert state is not None
-            _usage(
+            usage(
                 f"compute node {n} is already up (rap up pid {state['supervisor']['pid']}, "
                 f"{base / n / STATE_FILE}) - stop it first: rap down {model} --node {n}"
             )
         left = _left_behind(state)
         if left:
-            _usage(
+            usage(
                 f"compute node {n}: an earlier rap up died without stopping its processes "
                 f"({', '.join(f'{name} pid {pid}' for name, pid in left)}) - stop them "
                 f"first: rap down {model} --node {n}"
@@ -927,7 +905,7 @@ def up(
     try:
         runs = plan_run(doc, file, nodes, base, addresses=addresses, log_level=level, link=True)
     except KeyError as exc:
-        _usage(str(exc.args[0]) if exc.args else str(exc))
+        usage(str(exc.args[0]) if exc.args else str(exc))
     try:
         if run_dir is None:
             base.parent.mkdir(parents=True, exist_ok=True)
@@ -936,7 +914,7 @@ def up(
                 ignore.write_text("# rap up's run directories\n*\n", encoding="utf-8")
         _write_configs(runs, plan.system)
     except OSError as exc:
-        _usage(f"{base}: cannot write the run directory ({exc.strerror}) - choose --run-dir")
+        usage(f"{base}: cannot write the run directory ({exc.strerror}) - choose --run-dir")
     extra = f" --run-dir {base}" if run_dir is not None else ""
     code, error = anyio.run(_supervise, runs, file, plan.system, grace, extra)
     if error:
@@ -983,11 +961,7 @@ def down(
             supervisors.setdefault(int(state["supervisor"]["pid"]), []).append(n)
             continue
         # rap up died without stopping its processes (SIGKILL): stop what it left
-        leftovers.extend(
-            (f"{n}/{c.get('name')}", int(c["pid"]))
-            for c in state.get("children") or []
-            if isinstance(c, dict) and _same_process(c.get("pid"), c.get("identity"))
-        )
+        leftovers.extend((f"{n}/{name}", pid) for name, pid in _left_behind(state))
         state["state"] = "stopped"
         _replace(path, json.dumps(state, indent=2) + "\n")
         typer.echo(f"compute node {n}: its rap up is gone (it did not stop cleanly)")
@@ -1012,7 +986,7 @@ def down(
         if waiting:
             time.sleep(0.1)  # a command-line wait for other processes (no event loop here)
     if waiting:
-        _failed(
+        failed(
             "still running after "
             f"{timeout:g} s: "
             + "; ".join(f"pid {pid} ({what})" for pid, what in waiting.items())
@@ -1059,14 +1033,14 @@ def health(
     file, doc = _load(model)
     name = _one_node(doc, node)
     if timeout <= 0:
-        _usage(f"--timeout {timeout:g}: give a number of seconds > 0")
+        usage(f"--timeout {timeout:g}: give a number of seconds > 0")
     endpoints = list(connect or [])
     from rap_sdk.entry import EntryError, check_endpoints
 
     try:
         check_endpoints("--connect", endpoints)
     except EntryError as exc:
-        _usage(exc.message)
+        usage(exc.message)
     if endpoints:
         os.environ.pop(CONFIG_ENV, None)  # --connect says where: no overlay
         where = ", ".join(endpoints)
@@ -1077,7 +1051,7 @@ def health(
         path = base / name / STATE_FILE
         state = read_state(path)
         if not _running(state) or state is None or not isinstance(state.get("router"), str):
-            _usage(
+            usage(
                 f"no rap up runs compute node {name} ({path}) and {CONFIG_ENV} is not set - "
                 f"start it (rap up {model} --node {name}) or give --connect ENDPOINT"
             )

@@ -44,6 +44,7 @@ __all__ = [
     "Record",
     "free_port",
     "require_binary",
+    "stop_process",
 ]
 
 REQUIRE_SERVICES = "RAP_REQUIRE_SERVICES"
@@ -378,3 +379,17 @@ class OutputLines:
 
     def __str__(self) -> str:
         return "\n".join(self.lines[-200:])
+
+
+async def stop_process(proc: Any, *, grace: float = 30.0) -> None:
+    """Stop a child process a test started, whatever state the test left it in: SIGTERM,
+    then SIGKILL after ``grace`` s; shielded, so that a failing or cancelled test still
+    stops what it started."""
+    with anyio.CancelScope(shield=True):
+        if proc.returncode is None:
+            proc.terminate()
+            with anyio.move_on_after(grace):
+                await proc.wait()
+        if proc.returncode is None:
+            proc.kill()
+            await proc.wait()

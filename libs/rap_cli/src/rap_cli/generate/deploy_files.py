@@ -302,12 +302,9 @@ def _listens(plan: DeploymentPlan, node: str) -> list[_Listen]:
 def zenoh_files(plan: DeploymentPlan, node: str) -> tuple[str, str]:
     """The text of ``node``'s router and client Zenoh configs, inside compose."""
     local = f"tcp/0.0.0.0:{ROUTER_PORT}"
-    conf = router_config(plan, node, local=[local])
-    listen = [local]
-    for item in _listens(plan, node):
-        if item.endpoint not in listen:
-            listen.append(item.endpoint)
-    conf["listen"] = {"endpoints": listen}
+    conf = router_config(
+        plan, node, local=[local], listen=[item.endpoint for item in _listens(plan, node)]
+    )
     router = render_zenoh(conf, title=f"The Zenoh router of compute node {node} (in compose)")
     client = render_zenoh(
         client_config(f"tcp/{ROUTER_SERVICE}:{ROUTER_PORT}"),

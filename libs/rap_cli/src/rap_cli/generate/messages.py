@@ -112,6 +112,11 @@ def _merge(metas: list[str], spec: FieldSpec) -> str:
             old = float(bounds[k])
             v = max(old, v) if k in ("ge", "gt", "min_length") else min(old, v)
         bounds[k] = int(v) if k.endswith("length") or float(v).is_integer() else v
+    # msgspec takes one lower and one upper bound: keep the tighter of ge/gt, le/lt
+    for inclusive, strict, stricter in (("ge", "gt", float.__ge__), ("le", "lt", float.__le__)):
+        if inclusive in bounds and strict in bounds:
+            tight = stricter(float(bounds[strict]), float(bounds[inclusive]))
+            del bounds[inclusive if tight else strict]
     parts = [f"{k}={v!r}" for k, v in bounds.items()]
     if spec.pattern is not None:
         parts.append(f"pattern={spec.pattern!r}")
