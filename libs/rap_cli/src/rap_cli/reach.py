@@ -1,0 +1,179 @@
+"""How the operate verbs (``rap status``, ``rap topic echo``, ``rap record``, ...) reach a
+running system's fabric, from this machine or any other that reaches a router.
+
+Each verb takes the same options:
+
+- ``--system NAME``: the system (default: the model's, else ``RAP_SYSTEM``);
+- ``--connect ENDPOINT`` (repeatable): a Zenoh router to go through;
+- ``--model MODEL`` (default: ``./model.yaml`` when there is one): the system and, when no
+  endpoint is given, the routers of the compute nodes ``rap up`` runs from it;
+- ``--run-dir``: where that ``rap up`` keeps its state.
+
+Without ``--connect``, ``RAP_ZENOH_CONFIG`` (a Zenoh client config, as inside a
+container) says where the fabric is; else the ``rap up`` of the model does.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated
+
+import typer
+
+from .cli import failed, usage
+
+if TYPE_CHECKING:
+    from rap_schemas import DeploymentPlan
+    from rap_sdk import ZenohFabric
+
+__all__ = [
+    "SYSTEM_ENV",
+    "ConnectOpt",
+    "ModelOpt",
+    "Reach",
+    "RunDirOpt",
+    "SystemOpt",
+    "open_fabric",
+    "resolve",
+]
+
+SYSTEM_ENV = "RAP_SYSTEM"
+
+ModelOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--model",
+        "-m",
+        help="The system model (default: ./model.yaml when there is one): its system, and "
+        "the routers of the `rap up` that runs it.",
+        show_default=False,
+    ),
+]
+SystemOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--system",
+        "-s",
+        help=f"The system's name (default: the model's, else ${SYSTEM_ENV}).",
+        show_default=False,
+    ),
+]
+ConnectOpt = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--connect",
+        "-c",
+        help="A Zenoh endpoint of the fabric (a router: tcp/HOST:PORT), repeatable.",
+        show_default=False,
+    ),
+]
+RunDirOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--run-dir",
+        help="Where the model's `rap up` keeps its state "
+        "(default: `<model folder>/.rap/<system>`).",
+        show_default=False,
+    ),
+]
+
+
+@dataclass(frozen=True)
+class Reach:
+    """A system, and where its fabric is."""
+
+    system: str
+    endpoints: list[str]
+    """Routers to connect to (empty: ``RAP_ZENOH_CONFIG`` says)."""
+    where: str
+    """Said in errors: how the fabric was found."""
+    plan: DeploymentPlan | None = field(default=None, repr=False)
+    """The model's plan, when one was given or found."""
+
+
+def _find_model(model: Path | None) -> Path | None:
+    if model is not None:
+        return model / "model.yaml" if model.is_dir() else model
+    here = Path("model.yaml")
+    return here if here.is_file() else None
+
+
+def resolve(
+    model: Path | None,
+    system: str | None,
+    connect: list[str] | None,
+    run_dir: Path | None = None,
+) -> Reach:
+    """The system and endpoints the options name; a usage error says what to give."""
+    from rap_sdk.entry import EntryError, check_endpoints
+
+    from .up import STATE_FILE, _load, _running, read_state
+
+    file = _find_model(model)
+    plan = None
+    if file is not None:
+        file, doc = _load(file)
+        plan = doc.plan
+    name = system or (plan.system if plan is not None else None) or os.environ.get(SYSTEM_ENV)
+    if not name:
+        usage(
+            f"which system? give --system NAME, --model MODEL, or set {SYSTEM_ENV} "
+            "(or run the command in the folder of the model.yaml)"
+        )
+    from rap_schemas import keys
+
+    try:
+        keys.system_pattern(name)
+    except keys.KeyError_ as exc:
+        usage(f"--system {name!r}: {exc}")
+    endpoints = list(connect or [])
+    try:
+        check_endpoints("--connect", endpoints)
+    except EntryError as exc:
+        usage(exc.message)
+    if endpoints:
+        os.environ.pop("RAP_ZENOH_CONFIG", None)  # --connect says where: no overlay
+        return Reach(name, endpoints, ", ".join(endpoints), plan)
+    if os.environ.get("RAP_ZENOH_CONFIG"):
+        return Reach(name, [], f"RAP_ZENOH_CONFIG={os.environ['RAP_ZENOH_CONFIG']}", plan)
+    if file is None or plan is None:
+        usage(
+            "where is the fabric? give --connect ENDPOINT (a router, tcp/HOST:PORT), "
+            "--model MODEL of a running `rap up`, or set RAP_ZENOH_CONFIG"
+        )
+    base = (run_dir or (file.parent / ".rap" / plan.system)).resolve()
+    for node in plan.compute_nodes:
+        state = read_state(base / node / STATE_FILE)
+        if _running(state) and state is not None and isinstance(state.get("router"), str):
+            endpoints.append(state["router"])
+    if not endpoints:
+        usage(
+            f"no rap up runs {file} (nothing running under {base}) - start it (rap up "
+            f"{file} --all) or give --connect ENDPOINT"
+        )
+    return Reach(name, endpoints, f"the routers of rap up: {', '.join(endpoints)}", plan)
+
+
+@asynccontextmanager
+async def open_fabric(reach: Reach) -> AsyncIterator[ZenohFabric]:
+    """A client session on the fabric ``reach`` names; a clear error when it cannot be
+    reached."""
+    from rap_sdk import FabricError, ZenohConfig, ZenohFabric
+
+    conf = ZenohConfig(mode="client", listen=[], connect=reach.endpoints)
+    try:
+        fabric = ZenohFabric(conf)
+        await fabric.__aenter__()
+    except FabricError as exc:
+        failed(
+            f"cannot reach the fabric through {reach.where}: {exc} - is its router running "
+            "(rap up)?"
+        )
+    try:
+        yield fabric
+    finally:
+        await fabric.__aexit__(None, None, None)
