@@ -22,6 +22,7 @@ from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
 from functools import partial
+from time import perf_counter
 from typing import Any
 
 import anyio
@@ -41,6 +42,7 @@ from .errors import BackpressureTimeout, LifecycleError, RapError, RejectedSampl
 from .fabric import Fabric, Outgoing, Sample, Subscription
 from .gc import IdleCollector
 from .knowledge import _MISSING, KnowledgeClient
+from .latency import Latency
 from .node import Node, Route
 from .rejections import Rejections, Throttle
 
@@ -378,6 +380,14 @@ class NodeRuntime:
         self.event_keys: dict[str, str] = {}
         self.data_keys: dict[str, str] = {}
         self._state = "new"
+        self.latency = Latency()
+        """Seconds its handler calls took (rap status, metrics)."""
+        self.last_cycle = b""
+        """The cycle of its last handler call."""
+        self.last_call = 0
+        """When its last handler call ended, UTC ns (0: none yet)."""
+        self.last_failed = False
+        """Whether its last handler call raised."""
 
     def build_key(
         self,
@@ -658,6 +668,7 @@ class NodeRuntime:
                 waited = loop.call_soon(self._waited, ctx)
             error = ""
             self._calling += 1
+            t0 = perf_counter()
             try:
                 if route.takes_message:
                     await route.fn(ctx, ctx.message)
@@ -666,10 +677,15 @@ class NodeRuntime:
             except Exception as exc:  # a handler bug must not stop the node
                 error = f"{type(exc).__name__}: {exc}"
                 self._failed(route, ctx)
+                self.last_failed = True
             else:
                 self.stats.handled += 1
+                self.last_failed = False
             finally:
                 self._calling -= 1
+                self.latency.observe(perf_counter() - t0)
+                self.last_cycle = ctx.cycle
+                self.last_call = time.time_ns()
                 if waited is not None:
                     waited.cancel()  # also when the call was cancelled
             if traced:
