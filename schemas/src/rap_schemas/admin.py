@@ -31,6 +31,7 @@ __all__ = [
     "ADMIN_VERBS",
     "PAUSE_POLICY",
     "AdminReply",
+    "ComponentSnapshot",
     "ComponentState",
     "ComponentStatus",
     "ConfigRequest",
@@ -141,6 +142,18 @@ class AdminReply(msgspec.Struct, kw_only=True, omit_defaults=True):
     status: ComponentStatus | None = None
     config: dict[str, Any] | None = None
     snapshot: SnapshotInfo | None = None
+
+
+class ComponentSnapshot(msgspec.Struct, kw_only=True, frozen=True):
+    """A component's state as kept in knowledge (under :func:`snapshot_key`)."""
+
+    component: str
+    implementation: str
+    """``module:attr`` that made it."""
+    ts: int
+    """When it was taken (UTC ns)."""
+    state: bytes
+    """The node's snapshot hook's value, msgpack."""
 
 
 def snapshot_key(component: str) -> str:

@@ -223,6 +223,8 @@ class Node:
                 f"{', '.join(s.value for s in Stage)}"
             ) from None
         self.config = config
+        self.implementation = ""
+        """``module:attr`` it was loaded from (set by the loader; in status replies)."""
         self.routes: list[Route] = []
         self._snapshot: Callable[[], Any] | None = None
         self._restore: tuple[Callable[[Any], Any], type[Any]] | None = None

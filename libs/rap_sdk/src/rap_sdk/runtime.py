@@ -26,6 +26,7 @@ from time import perf_counter
 from typing import Any
 
 import anyio
+import msgspec
 from anyio.abc import TaskStatus
 from rap_schemas import Access, Message, Rejection, StageTrace, keys
 
@@ -38,7 +39,7 @@ from .envelope import (
     SystemClock,
     TypedEnvelope,
 )
-from .errors import BackpressureTimeout, LifecycleError, RapError, RejectedSample
+from .errors import BackpressureTimeout, ConfigError, LifecycleError, RapError, RejectedSample
 from .fabric import Fabric, Outgoing, Sample, Subscription
 from .gc import IdleCollector
 from .knowledge import _MISSING, KnowledgeClient
@@ -388,6 +389,25 @@ class NodeRuntime:
         """When its last handler call ended, UTC ns (0: none yet)."""
         self.last_failed = False
         """Whether its last handler call raised."""
+        self.compute_node = ""
+        """The compute node it runs on (set by the runner; in status replies)."""
+        self.resume_state = False
+        """At start, restore the node's latest snapshot from knowledge (when it has a
+        restore hook and there is one): a restarted process resumes its state."""
+        self.admin = True
+        """Serve the admin verbs (rap_sdk.admin) while running."""
+        self.started_at = 0
+        self.restarts = 0
+        self.swaps = 0
+        self._routes: list[Route] = []
+        """The route each consumer serves, by subscription (a swap replaces them)."""
+        self._paused = False
+        self._token: Any = None
+        self._swapped: dict[Route, Route] = {}
+        """Routes replaced by a swap -> their replacements (a consumer that took a
+        sample before the swap hands it to the new implementation)."""
+        self.admin_lock = anyio.Lock()
+        """Held by each admin verb: one at a time on a node."""
 
     def build_key(
         self,
@@ -405,6 +425,14 @@ class NodeRuntime:
     def busy(self) -> bool:
         """A handler is running or a sample is queued."""
         return bool(self._calling) or any(len(sub.inbox) for sub in self._subs)  # type: ignore[attr-defined]
+
+    @property
+    def inbox_depth(self) -> int:
+        """Samples queued in its inboxes now, all routes together (metrics)."""
+        n = 0
+        for sub in self._subs:
+            n += len(sub.inbox)  # type: ignore[attr-defined]
+        return n
 
     @property
     def sender_stats(self) -> SenderStats:
@@ -640,6 +668,8 @@ class NodeRuntime:
             await kb.await_versions(env.ctx, deadline)
         ctx = Context(self, sample.key, env, env.body, deadline)
         async with self._lock:
+            if self._swapped:
+                route = self._swapped.get(route, route)
             await self._call(route, ctx)
 
     async def _call(self, route: Route, ctx: Context, direct: bool = False) -> None:
@@ -749,7 +779,7 @@ class NodeRuntime:
         self._stopping = anyio.Event()
         if self._stop_requested:
             self._stopping.set()
-        token = None
+        self._token = admin = None
         alive_key = keys.alive(self.system, self.node.name)
         if self._check_name:
             try:
@@ -766,17 +796,27 @@ class NodeRuntime:
             ):
                 self._knowledge = kb
                 kb.on_rejection = self._publish_rejection
-                for route in self.node.routes:
+                if self.resume_state:
+                    from .admin import resume_from_knowledge
+
+                    await resume_from_knowledge(self, kb)
+                for i, route in enumerate(self.node.routes):
                     sub = self.fabric.subscribe(
                         self.route_key(route), route.policy, prepare=route.decode
                     )
                     if hasattr(sub, "direct") and route.accepts is not None:
                         sub.direct = partial(self.direct, route, sub)
                     self._subs.append(sub)
-                    tg.start_soon(self._consume, route, sub)
+                    self._routes.append(route)
+                    tg.start_soon(self._consume, i, sub)
+                if self.admin:
+                    from .admin import serve_admin
+
+                    admin = serve_admin(self)
                 # the token comes after the subscriptions: declarations on a link keep
                 # their order, so a peer that sees the token can already reach the node
-                token = self.fabric.declare_token(alive_key)
+                token = self._token = self.fabric.declare_token(alive_key)
+                self.started_at = time.time_ns()
                 task_status.started()
                 await self._stopping.wait()
                 for sub in self._subs:  # stop() may have come before they existed
@@ -785,23 +825,28 @@ class NodeRuntime:
         finally:
             with anyio.CancelScope(shield=True):
                 await self._flush_rejections()
+            if admin is not None:
+                admin.undeclare()
+            token = self._token
             if token is not None:
                 token.undeclare()
             for sub in self._subs:
                 sub.close()
             self._state = "stopped"
 
-    async def _consume(self, route: Route, sub: Subscription) -> None:
+    async def _consume(self, i: int, sub: Subscription) -> None:
         get, handle = sub.inbox.get, self.handle  # type: ignore[attr-defined]
         inflight = self._inflight
+        routes = self._routes  # a swap replaces routes[i] in place
         stats = sub.stats
         counted = 0
         while True:
             try:
                 sample = await get()
             except LifecycleError:  # closed and drained
-                self._dropped(route, stats.dropped - counted)
+                self._dropped(routes[i], stats.dropped - counted)
                 return
+            route = routes[i]
             if stats.dropped != counted:
                 self._dropped(route, stats.dropped - counted)
                 counted = stats.dropped
@@ -832,9 +877,146 @@ class NodeRuntime:
                 route.handler_name,
             )
 
+    # -- administration (rap_sdk.admin serves these as verbs) ------------------------------
+
+    @property
+    def paused(self) -> bool:
+        return self._paused
+
+    @asynccontextmanager
+    async def exclusive(self) -> AsyncIterator[None]:
+        """A block in which no handler of the node runs (the running one has returned;
+        what arrives meanwhile waits in the inboxes). A paused node's handlers do not
+        run already."""
+        if self._paused:
+            yield
+            return
+        await self._lock.__aenter__()
+        try:
+            yield
+        finally:
+            self._lock.release()
+
+    async def pause(self) -> bool:
+        """Let the running handler finish, then run none until :meth:`resume`: input
+        waits in the inboxes under their policies (``rap_schemas.admin.PAUSE_POLICY``).
+        False when it was paused already."""
+        if self._paused:
+            return False
+        await self._lock.__aenter__()
+        if self._stop_requested:
+            self._lock.release()
+            raise LifecycleError(f"node {self.node.name!r} is stopping; it cannot pause")
+        self._paused = True
+        return True
+
+    def resume(self) -> bool:
+        """Handle what waited, in order, and what comes. False when it was not paused."""
+        if not self._paused:
+            return False
+        self._paused = False
+        self._lock.release()
+        return True
+
+    def match_routes(self, new: Node) -> list[Route]:
+        """``new``'s routes in the order of the running ones; :class:`ConfigError` when
+        ``new`` does not handle exactly the same inputs with the same message types, or
+        is of another stage."""
+        if new.stage != self.node.stage:
+            raise ConfigError(
+                f"the new implementation is of stage {new.stage.value if new.stage else None!r}"
+                f", the component runs {self.node.stage.value if self.node.stage else None!r}: "
+                "a swap keeps the stage"
+            )
+        theirs = {(r.kind, r.name): r for r in new.routes}
+        ours = {(r.kind, r.name): r for r in self._routes}
+        problems = [f"it does not handle {k}/{n}" for k, n in ours if (k, n) not in theirs]
+        problems += [
+            f"it handles {k}/{n}, which the running one does not"
+            for k, n in theirs
+            if (k, n) not in ours
+        ]
+        for key, r in ours.items():
+            t = theirs.get(key)
+            if t is not None and t.msg_type.TYPE != r.msg_type.TYPE:
+                problems.append(f"{key[0]}/{key[1]} takes {t.msg_type.TYPE}, not {r.msg_type.TYPE}")
+        if problems:
+            raise ConfigError(
+                "the new implementation does not fit the running component: "
+                + "; ".join(problems)
+                + " (a swap keeps the inputs; change the model and restart to change them)"
+            )
+        return [theirs[(r.kind, r.name)] for r in self._routes]
+
+    def _install(self, new: Node, state: bytes) -> None:
+        """Put ``new`` in the old node's place (the caller holds :meth:`exclusive`):
+        its config carried over, ``state`` restored into it, its routes taking the
+        running ones' inboxes. Raises :class:`ConfigError` with nothing changed."""
+        old = self.node
+        routes = self.match_routes(new)
+        if old.config is not None and new.config is not None:
+            carried = {
+                k: v
+                for k, v in msgspec.structs.asdict(old.config).items()
+                if k in type(new.config).__struct_fields__
+            }
+            new.configure(carried)
+        new.restore(state)
+        if new.name != old.name:
+            log.info(
+                "node %s: the new implementation's Node is named %r; it runs as %s",
+                old.name,
+                new.name,
+                old.name,
+            )
+            new.name = old.name
+        for i, (sub, route) in enumerate(zip(self._subs, routes, strict=True)):
+            prev = self._routes[i]
+            for k, v in list(self._swapped.items()):
+                if v is prev:
+                    self._swapped[k] = route
+            self._swapped[prev] = route
+            self._routes[i] = route
+            if hasattr(sub, "direct") and route.accepts is not None:
+                sub.direct = partial(self.direct, route, sub)
+        self.node = new
+
+    async def swap(self, new: Node) -> None:
+        """Replace the node's implementation in the running process: no handler runs
+        while its state is taken and restored into ``new``; what arrives meanwhile
+        waits in the inboxes and is handled by ``new`` (nothing lost, nothing twice)."""
+        if new is self.node:
+            raise ConfigError("the component runs that implementation already")
+        self.match_routes(new)  # refused before anything waits
+        async with self.exclusive():
+            self._install(new, self.node.snapshot())
+            self.swaps += 1
+
+    async def restart(self, fresh: Node | None, state: bytes | None) -> None:
+        """Restart the component in this process: its liveliness token goes down, it
+        is replaced by ``fresh`` (None: the same Node object), ``state`` (None: the
+        state it had) is restored, and its token comes back. Input waits meanwhile."""
+        async with self.exclusive():
+            if self._token is not None:
+                self._token.undeclare()
+                self._token = None
+            try:
+                current = self.node.snapshot() if state is None else state
+                if fresh is not None and fresh is not self.node:
+                    self._install(fresh, current)
+                elif state is not None:
+                    self.node.restore(state)
+            finally:
+                self._token = self.fabric.declare_token(keys.alive(self.system, self.node.name))
+            self.restarts += 1
+            self.last_failed = False
+
     def stop(self) -> None:
         """Stop taking new samples; queued ones are still handled, then ``run`` returns."""
         self._stop_requested = True
+        if self._paused:  # what waited is handled, as for a running node
+            self._paused = False
+            self._lock.release()
         for sub in self._subs:
             sub.close()
         if self._stopping is not None:

@@ -98,6 +98,7 @@ def import_node(module: str) -> Node:
             f"{module} is a {type(obj).__name__}, not a rap_sdk.Node; point module: at a "
             f'Node object, e.g. \'{attr} = Node("{attr}", stage="monitor")\' in {module_name}'
         )
+    obj.implementation = module
     return obj
 
 
