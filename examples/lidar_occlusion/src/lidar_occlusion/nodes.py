@@ -49,6 +49,7 @@ __all__ = [
     "analyse",
     "build",
     "execute",
+    "fresh_analysis",
     "legitimate_node",
     "monitor",
     "plan",
@@ -235,3 +236,10 @@ analyse = _default.analyse
 plan = _default.plan
 legitimate_node = _default.legitimate
 execute = _default.execute
+
+
+def fresh_analysis() -> Node:
+    """A new instance of the analysis stage: a swap target (``rap swap analysis
+    lidar_occlusion.nodes:fresh_analysis``), e.g. after its code changed on disk; the
+    running one's mask window and config are handed over."""
+    return build().analyse

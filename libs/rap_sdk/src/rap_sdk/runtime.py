@@ -1069,11 +1069,15 @@ async def run_nodes(
     trace: bool = True,
     grace: float = 5.0,
     gc_idle: bool = False,
+    compute_node: str = "",
+    resume_state: bool = False,
 ) -> AsyncIterator[NodeGroup]:
     """Run ``nodes`` on ``fabric`` until the block exits; every node is subscribed when
     the block starts. On exit, nodes stop taking input, handle what is queued (within
     ``grace`` s), then are cancelled. ``gc_idle``: collect garbage only while the nodes
-    are idle (:class:`rap_sdk.gc.IdleCollector`; for a process that runs a loop)."""
+    are idle (:class:`rap_sdk.gc.IdleCollector`; for a process that runs a loop).
+    ``compute_node``: named in the nodes' status replies. ``resume_state``: each node
+    with a restore hook resumes from its latest snapshot in knowledge, if one is kept."""
     names = [n.name for n in nodes]
     if len(set(names)) != len(names):
         raise LifecycleError(f"node names must be unique within a group: {names}")
@@ -1083,6 +1087,9 @@ async def run_nodes(
             for n in nodes
         ]
     )
+    for rt in group.runtimes:
+        rt.compute_node = compute_node
+        rt.resume_state = resume_state
     # before the task group, so that the error comes plain
     await refuse_running(fabric=fabric, system=system, names=names)
     async with anyio.create_task_group() as tg:

@@ -91,7 +91,15 @@ async def _serve(share: NodeShare, zconf: ZenohConfig, system: str | None) -> No
             await tg.start(watch.run)
             async with anyio.create_task_group() as share_tg:
                 await share_tg.start(
-                    partial(run_share, share, fabric=fabric, system=system, stop=stop, gc_idle=True)
+                    partial(
+                        run_share,
+                        share,
+                        fabric=fabric,
+                        system=system,
+                        stop=stop,
+                        gc_idle=True,
+                        resume_state=True,  # a restarted runner resumes its components' state
+                    )
                 )
                 log.info("ready: %s", fabric.reach)
                 async for signum in signals:

@@ -58,12 +58,14 @@ async def run_share(
     trace: bool = True,
     grace: float = 5.0,
     gc_idle: bool = False,
+    resume_state: bool = False,
     task_status: TaskStatus[NodeGroup] = anyio.TASK_STATUS_IGNORED,
 ) -> None:
     """Run a loaded share until ``stop`` is set, then stop gracefully: no new input,
     what is queued is handled (within ``grace`` s). Cancelling the task stops at once.
     ``gc_idle``: collect garbage only while the nodes are idle (the runner process
-    does; see :mod:`rap_sdk.gc`).
+    does; see :mod:`rap_sdk.gc`). ``resume_state``: components with a restore hook
+    resume from their latest snapshot in knowledge (the runner process does).
 
     ``task_status.started`` gets the :class:`~rap_sdk.NodeGroup` once every Node is
     subscribed and its liveliness token declared. ``system`` overrides the plan's."""
@@ -86,6 +88,8 @@ async def run_share(
         trace=trace,
         grace=grace,
         gc_idle=gc_idle,
+        compute_node=share.compute_node,
+        resume_state=resume_state,
     ) as group:
         task_status.started(group)
         if stop is None:
