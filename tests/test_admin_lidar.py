@@ -8,6 +8,8 @@ two barriers is handled by the analysis, counted); snapshots are kept in knowled
 from __future__ import annotations
 
 import json
+import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -163,6 +165,12 @@ async def test_status_config_pause_swap_and_snapshots_on_the_running_lidar_loop(
             assert "admin/snapshot/analysis" in snap, snap
             restored = await rap("restore", "analysis")
             assert "restored the snapshot of lidar_occlusion.nodes:fresh_analysis" in restored
+
+            # a runner killed and restarted by rap up resumes the analysis from it
+            state = json.loads((run / "edge" / "up.json").read_text())
+            (runner,) = [c for c in state["children"] if c["name"] == "runner"]
+            os.kill(runner["pid"], signal.SIGKILL)
+            await out.line("analysis: resumed the state of its snapshot", timeout=30)
 
             down = await anyio.run_process(
                 [_rap(), "down", str(copy), "--run-dir", str(run)], check=False
