@@ -140,7 +140,8 @@ def _table(rows: list[ComponentStatus]) -> str:
     lines = [head]
     for s in rows:
         errors = s.failed + s.rejected + s.dropped
-        cycle = f"{s.last_cycle[:8]} {_age(s.last_call, now)}" if s.last_cycle else "-"
+        # the end of the id: a cycle id is a UUIDv7, whose first digits are its time
+        cycle = f"..{s.last_cycle[-8:]} {_age(s.last_call, now)}" if s.last_cycle else "-"
         lines.append(
             (
                 s.name,

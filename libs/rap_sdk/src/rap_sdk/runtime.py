@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
 import signal
 import time
 from collections import deque
@@ -66,6 +67,8 @@ MAX_DIRECT_DEPTH = 16
 """How many handlers may run nested in one task by direct dispatch (a chain of local
 stages each handling what the one before sent); deeper, samples go through inboxes."""
 _depth = [0]
+NODE_ENV = "RAP_COMPUTE_NODE"
+"""The environment variable naming the compute node a process runs on."""
 SEND_TIMEOUT = 1.0
 """Seconds a handler's emit or publish may wait for room in a local node's full FIFO
 inbox before that node is skipped (counted and logged): local nodes that send to each
@@ -389,8 +392,9 @@ class NodeRuntime:
         """When its last handler call ended, UTC ns (0: none yet)."""
         self.last_failed = False
         """Whether its last handler call raised."""
-        self.compute_node = ""
-        """The compute node it runs on (set by the runner; in status replies)."""
+        self.compute_node = os.environ.get(NODE_ENV, "")
+        """The compute node it runs on (in status replies): the runner's, else
+        ``RAP_COMPUTE_NODE`` (rap up sets it for every process of a node)."""
         self.resume_state = False
         """At start, restore the node's latest snapshot from knowledge (when it has a
         restore hook and there is one): a restarted process resumes its state."""
@@ -1088,7 +1092,7 @@ async def run_nodes(
         ]
     )
     for rt in group.runtimes:
-        rt.compute_node = compute_node
+        rt.compute_node = compute_node or rt.compute_node
         rt.resume_state = resume_state
     # before the task group, so that the error comes plain
     await refuse_running(fabric=fabric, system=system, names=names)

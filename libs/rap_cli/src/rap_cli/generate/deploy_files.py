@@ -96,6 +96,7 @@ RAP_DISTRIBUTIONS = (
     "rap-knowledge",
     "rap-trust-checker",
     "rap-sim-world",
+    "rap-adaptation-manager",
 )
 """RAP's distributions the image installs (from ``deploy/wheels``: they are not on PyPI)."""
 
