@@ -75,6 +75,7 @@ SCHEMAS = {
     "KnowledgeAccess",
     "LaserScan",
     "LidarMask",
+    "LogRecord",
     "Message",
     "Odometry",
     "PlanProposal",

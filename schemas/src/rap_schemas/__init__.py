@@ -32,6 +32,7 @@ from .lidar import (
     pack_flags,
     pack_ranges,
 )
+from .logrecord import LogRecord
 from .maplek import (
     NEW_PLAN,
     PLAN_REJECTED,
@@ -82,6 +83,7 @@ __all__ = [
     "KnowledgeSpec",
     "LaserScan",
     "LidarMask",
+    "LogRecord",
     "Message",
     "ModelGet",
     "ModelList",

@@ -345,7 +345,11 @@ def serve_admin(rt: NodeRuntime) -> Queryable:
             except Exception as exc:  # a user's hook (snapshot, restore, factory) failed
                 log.exception("node %s: admin %s failed", name, verb)
                 reply = _refused(verb, rt, f"{type(exc).__name__}: {exc}")
-        (log.info if reply.ok else log.warning)(
+        # the audit trail: what changed a component at INFO, what only read it at DEBUG
+        reads = verb == "status" or (
+            verb == "config" and reply.config is not None and not reply.message
+        )
+        (log.warning if not reply.ok else log.debug if reads else log.info)(
             "admin %s %s: %s%s",
             verb,
             name,

@@ -11,6 +11,7 @@ from __future__ import annotations
 import importlib.util
 import logging
 import signal
+from functools import partial
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -19,6 +20,9 @@ import typer
 from rap_schemas.yamlconf import YamlError, load_yaml, read_text_file
 from rap_sdk import FabricError, LifecycleError, ZenohConfig, ZenohFabric
 from rap_sdk.entry import check_endpoints, check_system, fail, leaf, run_cli, setup_logging
+from rap_sdk.knowledge import SERVICE_NODE
+from rap_sdk.logs import LogContext, check_redis_url, open_file_log, publish_logs
+from rap_sdk.metrics import KnowledgeServiceCollector, check_metrics_option, start_metrics
 from rap_sdk.peers import PeerWatch
 
 from .app import open_service
@@ -54,12 +58,29 @@ def main(
         typer.Option("--config", help="YAML KnowledgeConfig; when given, it sets everything."),
     ] = None,
     log_level: Annotated[str, typer.Option(help="Logging level.")] = "INFO",
+    metrics: Annotated[
+        str | None,
+        typer.Option(
+            metavar="HOST:PORT", help="Serve Prometheus metrics on http://HOST:PORT/metrics."
+        ),
+    ] = None,
+    log_file: Annotated[
+        Path | None, typer.Option(help="Also log JSON lines to this file (rotated, bounded).")
+    ] = None,
+    log_redis: Annotated[
+        str | None,
+        typer.Option(metavar="URL", help="Also log to the Redis stream rap:<system>:log."),
+    ] = None,
 ) -> None:
     """Serve knowledge for one system until SIGTERM or SIGINT.
 
     The memory backend (the default) loses every write, acknowledged or not, when the
-    service stops; sqlite and redis keep acknowledged writes."""
+    service stops; sqlite and redis keep acknowledged writes.
+
+    Example: python -m knowledge --system demo --backend sqlite --metrics 127.0.0.1:9465"""
     setup_logging(log_level)
+    metrics = check_metrics_option(metrics)
+    log_redis = check_redis_url(log_redis)
     if config_file is not None:
         config = load_config(config_file)
     else:
@@ -78,12 +99,19 @@ def main(
         connect=check_endpoints("--connect", connect),
         query_handler_timeout=config.handler_timeout,
     )
+    logs = LogContext(system=config.system, process="knowledge")
+    open_file_log(log_file, logs)
     if config.backend == "memory":
         log.warning("%s", MEMORY_WARNING)
     # uvloop when present (as node processes run): a cheaper wake-up per write received
     use_uvloop = importlib.util.find_spec("uvloop") is not None
     try:
-        anyio.run(_serve, config, zconf, backend_options={"use_uvloop": use_uvloop})
+        anyio.run(
+            partial(_serve, logs=logs, metrics=metrics, log_redis=log_redis),
+            config,
+            zconf,
+            backend_options={"use_uvloop": use_uvloop},
+        )
     except (ServiceError, FabricError, LifecycleError, BaseExceptionGroup) as exc:
         inner = leaf(exc)
         if isinstance(inner, ServiceError):  # the store cannot be opened
@@ -106,13 +134,24 @@ def load_config(path: Path) -> KnowledgeConfig:
     return config
 
 
-async def _serve(config: KnowledgeConfig, zconf: ZenohConfig) -> None:
+async def _serve(
+    config: KnowledgeConfig,
+    zconf: ZenohConfig,
+    *,
+    logs: LogContext,
+    metrics: str | None = None,
+    log_redis: str | None = None,
+) -> None:
     with anyio.open_signal_receiver(signal.SIGTERM, signal.SIGINT) as signals:
         async with (
             ZenohFabric(zconf) as fabric,
-            open_service(config, fabric=fabric),
+            publish_logs(fabric, logs, node=SERVICE_NODE, redis_url=log_redis),
+            open_service(config, fabric=fabric) as service,
             anyio.create_task_group() as tg,
         ):
+            # served from a daemon thread of its own until the process ends
+            collector = KnowledgeServiceCollector(service, system=config.system)
+            start_metrics(metrics, [collector], what="knowledge")
             await tg.start(PeerWatch(fabric=fabric, system=config.system, mine={"knowledge"}).run)
             log.info(
                 "ready: system %r, %s backend, %s",

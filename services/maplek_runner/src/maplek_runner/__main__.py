@@ -16,6 +16,8 @@ import zenoh
 from rap_schemas import PlanError, load_plan
 from rap_sdk import FabricError, LifecycleError, ZenohConfig, ZenohFabric
 from rap_sdk.entry import check_endpoints, check_system, fail, leaf, run_cli, setup_logging
+from rap_sdk.logs import LogContext, check_redis_url, open_file_log, publish_logs
+from rap_sdk.metrics import RuntimeCollector, check_metrics_option, start_metrics
 from rap_sdk.peers import PeerWatch
 
 from .errors import RunnerError
@@ -45,9 +47,26 @@ def main(
     ] = None,
     system: Annotated[str | None, typer.Option(help="System name (default: the plan's).")] = None,
     log_level: Annotated[str, typer.Option(help="Logging level.")] = "INFO",
+    metrics: Annotated[
+        str | None,
+        typer.Option(
+            metavar="HOST:PORT", help="Serve Prometheus metrics on http://HOST:PORT/metrics."
+        ),
+    ] = None,
+    log_file: Annotated[
+        Path | None, typer.Option(help="Also log JSON lines to this file (rotated, bounded).")
+    ] = None,
+    log_redis: Annotated[
+        str | None,
+        typer.Option(metavar="URL", help="Also log to the Redis stream rap:<system>:log."),
+    ] = None,
 ) -> None:
-    """Run a compute node's share of a deployment plan. A bad plan exits with code 2."""
+    """Run a compute node's share of a deployment plan. A bad plan exits with code 2.
+
+    Example: python -m maplek_runner model.yaml --node robot --metrics 127.0.0.1:9464"""
     setup_logging(log_level)
+    metrics = check_metrics_option(metrics)
+    log_redis = check_redis_url(log_redis)
     if system is not None:
         check_system(system)
     listen = check_endpoints("--listen", listen)
@@ -65,9 +84,23 @@ def main(
             f"'node: {node}' under components"
         )
     zenoh.try_init_log_from_env()
+    logs = LogContext(
+        system=system or share.system,
+        compute_node=node,
+        process="runner",
+        components={(c.spec.module or "").partition(":")[0]: c.name for c in share.components},
+        names=frozenset(c.name for c in share.components),
+    )
+    open_file_log(log_file, logs)
     use_uvloop = importlib.util.find_spec("uvloop") is not None
     try:
-        anyio.run(_serve, share, zconf, system, backend_options={"use_uvloop": use_uvloop})
+        anyio.run(
+            partial(_serve, logs=logs, metrics=metrics, log_redis=log_redis),
+            share,
+            zconf,
+            system,
+            backend_options={"use_uvloop": use_uvloop},
+        )
     except (FabricError, LifecycleError, BaseExceptionGroup) as exc:
         inner = leaf(exc)
         if isinstance(inner, FabricError):  # e.g. a listen endpoint that is taken
@@ -77,11 +110,23 @@ def main(
         raise
 
 
-async def _serve(share: NodeShare, zconf: ZenohConfig, system: str | None) -> None:
+async def _serve(
+    share: NodeShare,
+    zconf: ZenohConfig,
+    system: str | None,
+    *,
+    logs: LogContext,
+    metrics: str | None = None,
+    log_redis: str | None = None,
+) -> None:
     stop = anyio.Event()
     name = system or share.system
     with anyio.open_signal_receiver(signal.SIGTERM, signal.SIGINT) as signals:
-        async with ZenohFabric(zconf) as fabric, anyio.create_task_group() as tg:
+        async with (
+            ZenohFabric(zconf) as fabric,
+            publish_logs(fabric, logs, node=f"runner-{share.compute_node}", redis_url=log_redis),
+            anyio.create_task_group() as tg,
+        ):
             watch = PeerWatch(
                 fabric=fabric,
                 system=name,
@@ -90,7 +135,7 @@ async def _serve(share: NodeShare, zconf: ZenohConfig, system: str | None) -> No
             )
             await tg.start(watch.run)
             async with anyio.create_task_group() as share_tg:
-                await share_tg.start(
+                group = await share_tg.start(
                     partial(
                         run_share,
                         share,
@@ -101,6 +146,11 @@ async def _serve(share: NodeShare, zconf: ZenohConfig, system: str | None) -> No
                         resume_state=True,  # a restarted runner resumes its components' state
                     )
                 )
+                # served from a daemon thread of its own until the process ends
+                collector = RuntimeCollector(
+                    lambda: group.runtimes, system=name, compute_node=share.compute_node
+                )
+                start_metrics(metrics, [collector], what="runner")
                 log.info("ready: %s", fabric.reach)
                 async for signum in signals:
                     log.info("received %s; stopping", signal.Signals(signum).name)

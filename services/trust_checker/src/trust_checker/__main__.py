@@ -27,6 +27,7 @@ import logging
 import signal
 import sys
 from collections.abc import AsyncIterator
+from functools import partial
 from pathlib import Path
 from typing import Annotated, TypeVar
 
@@ -36,15 +37,18 @@ from rap_schemas import keys
 from rap_sdk import FabricError, ZenohConfig, ZenohFabric
 from rap_sdk.entry import check_endpoints, check_system, fail, run_cli, setup_logging
 from rap_sdk.errors import ConfigError
+from rap_sdk.logs import LogContext, check_redis_url, open_file_log, publish_logs
+from rap_sdk.metrics import TrustCollector, VerdictCounts, check_metrics_option, start_metrics
 
 from .config import FabricConfig, FabricInput, MqttConfig, ServiceConfig, TopicMap, decode_map
 from .console import ConsoleSink, console_lines, verdict_lines
 from .engine import SpecRunner
 from .errors import EvalError, InputError, SpecError, TextFileError
 from .explain import Explainer, to_message
+from .io.ports import Sink
 from .lang import load_spec, read_source
 from .lang.ast import Spec
-from .service import open_service
+from .service import TrustService, open_service
 from .tracefile import load_trace
 
 __all__ = ["cli", "main"]
@@ -126,9 +130,27 @@ def main(
         str, typer.Option(help="Tick policy: message, or window:<duration> (window:10ms).")
     ] = "message",
     log_level: Annotated[str, typer.Option(help="Logging level.")] = "INFO",
+    metrics: Annotated[
+        str | None,
+        typer.Option(
+            metavar="HOST:PORT",
+            help="Live modes: serve Prometheus metrics on http://HOST:PORT/metrics.",
+        ),
+    ] = None,
+    log_file: Annotated[
+        Path | None, typer.Option(help="Also log JSON lines to this file (rotated, bounded).")
+    ] = None,
+    log_redis: Annotated[
+        str | None,
+        typer.Option(metavar="URL", help="Also log to the Redis stream rap:<system>:log."),
+    ] = None,
 ) -> None:
-    """Run a trust spec. A mistake exits with code 2 and one 'error:' line."""
+    """Run a trust spec. A mistake exits with code 2 and one 'error:' line.
+
+    Example: python -m trust_checker spec.dsrv --fabric demo --metrics 127.0.0.1:9466"""
     setup_logging(log_level)
+    metrics = check_metrics_option(metrics)
+    log_redis = check_redis_url(log_redis)
     mqtt_cfg = None
     if mqtt is not None:
         host, port = _mqtt_address(mqtt)
@@ -165,11 +187,20 @@ def main(
         return
     if mqtt_cfg is None and fabric_cfg is None:
         raise fail(f"nothing to run on - {_HOW_TO_RUN}")
+    if log_redis is not None and not fabric:
+        raise fail("--log-redis names the stream by system - give --fabric SYSTEM too")
+    logs = LogContext(system=fabric or "", process=node)
+    open_file_log(log_file, logs)
     # uvloop when present, as RAP's other services run: a cheaper wake-up per message
     use_uvloop = importlib.util.find_spec("uvloop") is not None
     try:
         anyio.run(
-            _serve, config, parsed, zconf, explain, backend_options={"use_uvloop": use_uvloop}
+            partial(_serve, logs=logs, metrics=metrics, log_redis=log_redis),
+            config,
+            parsed,
+            zconf,
+            explain,
+            backend_options={"use_uvloop": use_uvloop},
         )
     except FabricError as exc:  # e.g. a listen endpoint that is taken
         raise fail(f"{exc} - check --listen and --connect", 1) from None
@@ -276,18 +307,36 @@ def _write(out: str, err: str) -> None:
 
 
 async def _serve(
-    config: ServiceConfig, spec: Spec, zconf: ZenohConfig | None, explain: bool
+    config: ServiceConfig,
+    spec: Spec,
+    zconf: ZenohConfig | None,
+    explain: bool,
+    *,
+    logs: LogContext,
+    metrics: str | None = None,
+    log_redis: str | None = None,
 ) -> None:
     sink = ConsoleSink(explain=explain)
+    counts = VerdictCounts()
+    sinks: list[Sink] = [sink, counts]
+    running: list[TrustService] = []
+    # served from a daemon thread of its own until the process ends
+    collector = TrustCollector(
+        counts, lambda: running[0] if running else None, system=logs.system, node=config.node
+    )
+    start_metrics(metrics, [collector], what="trust checker")
     with anyio.open_signal_receiver(signal.SIGTERM, signal.SIGINT) as signals:
         if zconf is None:
-            async with open_service(config, spec, sinks=[sink]):
+            async with open_service(config, spec, sinks=sinks) as service:
+                running.append(service)
                 await _wait_for_signal(signals)
             return
         async with (
             ZenohFabric(zconf) as fabric,
-            open_service(config, spec, fabric=fabric, sinks=[sink]),
+            publish_logs(fabric, logs, node=config.node, redis_url=log_redis),
+            open_service(config, spec, fabric=fabric, sinks=sinks) as service,
         ):
+            running.append(service)
             await _wait_for_signal(signals)
 
 
