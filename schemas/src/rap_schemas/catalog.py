@@ -10,6 +10,7 @@ from typing import Final
 
 from .knowledge import KbRecord
 from .lidar import LaserScan, LidarMask, Odometry, Pose2D, SimTime, SpinCommand, SpinPlan, Twist
+from .logrecord import LogRecord
 from .maplek import Empty, KnowledgeAccess, PlanProposal, Rejection, StageTrace, Verdict
 from .message import Message
 from .trust import TrustOutput, TrustSpecStatus, TrustSpecUpdate, TrustVerdict
@@ -22,6 +23,7 @@ MESSAGES: Final[tuple[type[Message], ...]] = (
     KnowledgeAccess,
     LaserScan,
     LidarMask,
+    LogRecord,
     Odometry,
     PlanProposal,
     Pose2D,

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 from typing import Final
 
-from .catalog import register
 from .message import Message
 
 __all__ = ["MAX_LOG_MESSAGE", "LogRecord"]
@@ -43,5 +42,3 @@ class LogRecord(Message, frozen=True, omit_defaults=True):
     exc: str = ""
     """The exception's traceback text, when the line carries one."""
 
-
-register(LogRecord)
