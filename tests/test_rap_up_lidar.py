@@ -93,7 +93,7 @@ async def test_rap_up_all_closes_the_loop_and_rap_down_stops_it(
     names = {n: {c["name"] for c in s["children"]} for n, s in states.items()}
     assert names == {
         "robot": {"router", "runner", "robot"},
-        "edge": {"router", "knowledge", "runner"},
+        "edge": {"router", "knowledge", "manager", "runner"},
     }
     # and all of it has stopped
     for node in ("robot", "edge"):

@@ -322,7 +322,10 @@ def test_two_nodes_sqlite_trust_and_run(tmp_path: Path, compose_schema: dict[str
         "--world",
         "/app/w.yaml",
     ]
-    assert sim["environment"] == {"RAP_ZENOH_CONFIG": "/app/deploy/robot/zenoh-client.json5"}
+    assert sim["environment"] == {
+        "RAP_ZENOH_CONFIG": "/app/deploy/robot/zenoh-client.json5",
+        "RAP_COMPUTE_NODE": "robot",
+    }
     assert robot["runner"]["command"][3:6] == ["/app/deploy/robot/plan.yaml", "--node", "robot"]
     assert "volumes" not in _compose(files, "robot")
 

@@ -193,7 +193,7 @@ async def test_up_health_restart_and_down(tmp_path: Path, monkeypatch: pytest.Mo
     async with rap_up(str(model), "--node", "a", "--run-dir", str(run_dir)) as up:
         await up.line("compute node a is up")
         pids = _pids(run_dir, "a")
-        assert set(pids) == {"router", "knowledge", "runner"}, up.output()
+        assert set(pids) == {"router", "knowledge", "manager", "runner"}, up.output()
         router_conf = (run_dir / "a" / "zenoh-router.json5").read_text(encoding="utf-8")
         assert '"mode": "router"' in router_conf
         assert (run_dir / "a" / "logs" / "router.log").exists()
@@ -246,7 +246,7 @@ async def test_up_health_restart_and_down(tmp_path: Path, monkeypatch: pytest.Mo
             assert await up.proc.wait() == 0, up.output()
     stops = [i for i, line in enumerate(up.lines) if "| stopped " in line]
     order = [up.lines[i].split("| stopped ")[1].split()[0] for i in stops]
-    assert order == ["runner", "knowledge", "router"], up.output()
+    assert order == ["runner", "manager", "knowledge", "router"], up.output()
     assert all(_gone(pid) for pid in pids.values()), pids
     assert _state(run_dir, "a")["state"] == "stopped"
 

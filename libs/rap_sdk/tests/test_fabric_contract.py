@@ -23,6 +23,7 @@ from rap_sdk import (
     MemoryBus,
     MemoryFabric,
     Overflow,
+    QueryError,
     QueryRequest,
     Reply,
     ZenohConfig,
@@ -143,6 +144,27 @@ async def test_query_reply_local_remote_and_errors(pair: tuple[Any, Any]) -> Non
         many = await asker.query("rap/s/kb/list/**")
         assert sorted(r.payload for r in many) == [b"1", b"2"]
         assert await asker.query("rap/s/kb/nobody", timeout=1.0) == []
+
+
+async def test_a_partial_query_keeps_the_replies_that_came_in_time(
+    pair: tuple[Any, Any],
+) -> None:
+    a, b = pair
+
+    async def quick(req: QueryRequest) -> list[Reply]:
+        return [Reply("rap/s/admin/quick/status", b"here")]
+
+    async def stuck(req: QueryRequest) -> list[Reply]:
+        await anyio.sleep(30)
+        return []
+
+    a.serve("rap/s/admin/quick/*", quick)
+    a.serve("rap/s/admin/stuck/*", stuck)
+    await b.wait_matched("rap/s/admin/stuck/status", queryable=True)
+    with pytest.raises(QueryError):
+        await b.query("rap/s/admin/*/status", timeout=0.5)
+    got = await b.query("rap/s/admin/*/status", timeout=0.5, partial=True)
+    assert got == [Reply("rap/s/admin/quick/status", b"here")]
 
 
 async def test_liveliness_appears_and_disappears(pair: tuple[Any, Any]) -> None:

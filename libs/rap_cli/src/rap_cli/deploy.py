@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import hashlib
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any, Literal
@@ -52,8 +52,10 @@ PYTHON = "{python}"
 CONFIG_ENV = "RAP_ZENOH_CONFIG"
 """The environment variable a RAP process reads its Zenoh client config from
 (``rap_sdk.fabric.CONFIG_ENV``)."""
+NODE_ENV = "RAP_COMPUTE_NODE"
+"""The compute node a process runs on (``rap_sdk.runtime.NODE_ENV``)."""
 
-Role = Literal["router", "knowledge", "runner", "trust", "component"]
+Role = Literal["router", "knowledge", "manager", "runner", "trust", "component"]
 
 _HOST = re.compile(r"^(?P<proto>[a-z][a-z0-9+\-]*)/(?P<host>\[[^\]]*\]|[^:/\[]+)(?P<rest>.*)$")
 
@@ -71,6 +73,8 @@ class ProcessSpec:
     env: Mapping[str, str] = field(default_factory=dict)
     """Environment variables it needs on top of the inherited ones."""
     doc: str = ""
+    metrics: str = ""
+    """``HOST:PORT`` where it serves Prometheus metrics (``--metrics``); "" for none."""
 
     def command(self, python: str) -> list[str]:
         """The argv with the interpreter filled in."""
@@ -236,10 +240,27 @@ def node_processes(
     system: str | None = None,
     log_level: str = "INFO",
     addresses: Mapping[str, str] | None = None,
+    metrics: Callable[[str], str] | None = None,
+    log_dir: str | None = None,
+    manager_http: str | None = None,
 ) -> list[ProcessSpec]:
     """What compute node ``node`` runs, in start order (the router first). ``system``
     overrides the model's system name; ``addresses`` as for :func:`resolve_endpoint`
-    (a Redis URL whose host is a compute node's name or address is resolved too)."""
+    (a Redis URL whose host is a compute node's name or address is resolved too).
+    ``metrics``: the ``HOST:PORT`` each RAP service (knowledge, runner, trust checkers)
+    serves its metrics on, by process name; ``log_dir``: each writes its JSON lines
+    log to ``<log_dir>/<name>.jsonl`` (``rap up`` gives both; none by default).
+    ``manager_http``: the node that hosts knowledge also runs the system's adaptation
+    manager, its dashboard on this ``HOST:PORT`` (``rap up`` gives one; none by default)."""
+
+    def observed(name: str, argv: list[str]) -> str:
+        address = metrics(name) if metrics is not None else ""
+        if address:
+            argv += ["--metrics", address]
+        if log_dir is not None:
+            argv += ["--log-file", str(PurePosixPath(log_dir) / f"{name}.jsonl")]
+        return address
+
     plan = doc.plan
     if node not in plan.compute_nodes:
         raise KeyError(
@@ -247,7 +268,8 @@ def node_processes(
             f"are: {', '.join(plan.compute_nodes)}"
         )
     sys_name = system or plan.system
-    client = {CONFIG_ENV: paths.client_config}
+    # RAP_COMPUTE_NODE: each runtime names its compute node in its status replies
+    client = {CONFIG_ENV: paths.client_config, NODE_ENV: node}
     out = [
         ProcessSpec(
             "router",
@@ -267,18 +289,26 @@ def node_processes(
                 resolve_url(kb.url or "redis://127.0.0.1:6379/0", plan, addresses),
             ]
         argv += ["--log-level", log_level]
-        out.append(ProcessSpec("knowledge", "knowledge", tuple(argv), client, "knowledge"))
+        at = observed("knowledge", argv)
+        out.append(ProcessSpec("knowledge", "knowledge", tuple(argv), client, "knowledge", at))
+        if manager_http is not None:
+            argv = [PYTHON, "-m", "adaptation_manager", "--system", sys_name]
+            argv += ["--http", manager_http, "--log-level", log_level]
+            about = f"the adaptation manager, its dashboard on http://{manager_http}/"
+            out.append(ProcessSpec("manager", "manager", tuple(argv), client, about))
     if _has_runner(plan, node):
         argv = [PYTHON, "-m", "maplek_runner", paths.model, "--node", node]
         argv += ["--system", sys_name, "--log-level", log_level]
         names = ", ".join(n for n, c in plan.components_on(node).items() if c.module)
-        out.append(ProcessSpec("runner", "runner", tuple(argv), client, names))
+        at = observed("runner", argv)
+        out.append(ProcessSpec("runner", "runner", tuple(argv), client, names, at))
     if plan.trust.node == node:
         for spec in plan.trust.specs:
             stem = PurePosixPath(spec).stem
             argv = [PYTHON, "-m", "trust_checker", _rel(paths.model_dir, spec)]
             argv += ["--fabric", sys_name, "--node", f"trust-{stem}", "--log-level", log_level]
-            out.append(ProcessSpec(f"trust-{stem}", "trust", tuple(argv), client, spec))
+            at = observed(f"trust-{stem}", argv)
+            out.append(ProcessSpec(f"trust-{stem}", "trust", tuple(argv), client, spec, at))
     for name, comp in plan.components_on(node).items():
         if not comp.run:
             continue

@@ -9,9 +9,11 @@ Each compute node runs one Zenoh router (:mod:`rap_cli.router`); its other proce
 Zenoh clients of it (``RAP_ZENOH_CONFIG``), see :mod:`rap_cli.deploy`. A node's files live
 in ``<run-dir>/<node>/`` (the run dir defaults to ``<model folder>/.rap/<system>``):
 ``zenoh-router.json5`` and ``zenoh-client.json5`` (written by ``rap up``), ``logs/<name>.log``
-(each process's output), ``data/`` (knowledge's SQLite file) and ``up.json``, the state
-of the ``rap up`` that runs the node (its pid, each process's pid, state and restarts),
-which ``rap down`` and ``rap health`` read.
+(each process's output), ``logs/<name>.jsonl`` (the JSON lines log of each RAP service:
+knowledge, runner, trust checkers; ``rap logs`` reads them), ``data/`` (knowledge's SQLite
+file) and ``up.json``, the state of the ``rap up`` that runs the node (its pid, each
+process's pid, state, restarts and metrics address: each RAP service serves Prometheus
+metrics on a free loopback port), which ``rap down`` and ``rap health`` read.
 
 ``rap up`` supervises: a process that exits is restarted after a delay that doubles from
 0.5 s to 30 s (back to 0.5 s once it stayed up 30 s). SIGTERM or SIGINT stops every
@@ -29,7 +31,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Annotated, Any
@@ -176,6 +178,8 @@ class NodeRun:
     client: dict[str, Any]
     """The Zenoh config of the node's other processes."""
     processes: list[ProcessSpec]
+    dashboard: str = ""
+    """The adaptation manager's dashboard URL, on the node that hosts knowledge."""
 
 
 def _free_ports(n: int) -> list[int]:
@@ -187,6 +191,20 @@ def _free_ports(n: int) -> list[int]:
             sock.bind(("127.0.0.1", 0))
             ports.append(int(sock.getsockname()[1]))
         return ports
+
+
+def _metrics_ports() -> Callable[[str], str]:
+    """A free loopback ``HOST:PORT`` for each process's metrics, none given twice."""
+    given: set[int] = set()
+
+    def pick(name: str) -> str:
+        while True:
+            (port,) = _free_ports(1)
+            if port not in given:
+                given.add(port)
+                return f"127.0.0.1:{port}"
+
+    return pick
 
 
 def plan_run(
@@ -209,12 +227,23 @@ def plan_run(
     plan = doc.plan
     addresses = dict(addresses or {})
     runs: list[NodeRun] = []
+    metrics = _metrics_ports()
     for node, port in zip(nodes, _free_ports(len(nodes)), strict=True):
         paths = Paths.local(model, run_dir, node)
         local = f"tcp/127.0.0.1:{port}"
         conf = router_config(plan, node, local=[local], addresses=addresses)
+        # one adaptation manager per system, beside knowledge; its dashboard on loopback
+        http = metrics("manager") if knowledge_node(plan) == node else None
         procs = node_processes(
-            doc, node, paths=paths, system=plan.system, log_level=log_level, addresses=addresses
+            doc,
+            node,
+            paths=paths,
+            system=plan.system,
+            log_level=log_level,
+            addresses=addresses,
+            metrics=metrics,
+            log_dir=str(Path(paths.router_config).parent / "logs"),
+            manager_http=http,
         )
         runs.append(
             NodeRun(
@@ -225,6 +254,7 @@ def plan_run(
                 router=conf,
                 client=client_config(local),
                 processes=procs,
+                dashboard=f"http://{http}/" if http else "",
             )
         )
     if link and len(runs) > 1:
@@ -561,6 +591,7 @@ class Supervisor:
             "started": self.started,
             "updated": time.time(),
             "router": run.local,
+            "dashboard": run.dashboard or None,
             "router_config": run.paths.router_config,
             "client_config": run.paths.client_config,
             "children": [
@@ -573,6 +604,7 @@ class Supervisor:
                     "restarts": c.restarts,
                     "last_exit": c.last_exit,
                     "log": str(c.log_path),
+                    "metrics": c.spec.metrics or None,
                     "argv": c.argv,
                 }
                 for c in self.children
@@ -796,6 +828,9 @@ class Supervisor:
                 f"compute node {r.node} is up: its router listens on {listen}; processes: "
                 f"{names}; logs in {r.dir / 'logs'}"
             )
+        for r in self.runs:
+            if r.dashboard:
+                await self.say(f"dashboard: {r.dashboard}")
         first = self.runs[0].node
         await self.say(
             f"check it with 'rap health {self.model} --node {first}{self.args}'; stop it with "
@@ -868,6 +903,9 @@ def up(
     Zenoh clients of the router. Their output is shown prefixed with the process's name
     and kept in `<run-dir>/<node>/logs/`. A process that exits is restarted (with a
     growing delay). Ctrl-C or SIGTERM (`rap down`) stops everything, last started first.
+    Beside knowledge runs the system's adaptation manager: its dashboard's address
+    (loopback, a free port) is printed (`dashboard: http://127.0.0.1:PORT/`) and kept in
+    that node's `up.json`.
     Exit 0 when stopped so, 1 when a router cannot start, 2 for a bad model or usage."""
     file, doc = _load(model)
     plan = doc.plan

@@ -371,21 +371,29 @@ async def call(
     timeout: float = 5.0,
 ) -> list[AdminReply]:
     """Call ``verb`` on ``component`` (``*``: every component of ``system``) and return
-    the replies, sorted by component. Raises :class:`AdminError` when a reply cannot be
-    read; an empty list when nobody answered."""
-    if component == "*":
+    the replies, sorted by component; an empty list when nobody answered. For one
+    component a reply that cannot be read raises :class:`AdminError`; for ``*`` it is
+    logged and left out, as are components that do not answer within ``timeout`` (the
+    others' replies are kept)."""
+    every = component == "*"
+    if every:
         selector = keys.pattern(system, keys.Kind.ADMIN, f"*/{verb}")
         keys.admin(system, "x", verb)  # validates the verb as a key chunk
     else:
         selector = keys.admin(system, component, verb)
     payload = _encode(request) if request is not None else b""
-    replies = await fabric.query(selector, payload, timeout=timeout)
+    replies = await fabric.query(selector, payload, timeout=timeout, partial=every)
     out: list[AdminReply] = []
     for r in replies:
-        if not r.ok:
-            raise AdminError(f"{r.key}: {r.payload.decode('utf-8', 'replace')}")
         try:
-            out.append(_reply_decoder.decode(r.payload))
-        except (msgspec.ValidationError, msgspec.DecodeError) as exc:
-            raise AdminError(f"{r.key}: not an admin reply: {exc}") from None
+            if not r.ok:
+                raise AdminError(f"{r.key}: {r.payload.decode('utf-8', 'replace')}")
+            try:
+                out.append(_reply_decoder.decode(r.payload))
+            except (msgspec.ValidationError, msgspec.DecodeError) as exc:
+                raise AdminError(f"{r.key}: not an admin reply: {exc}") from None
+        except AdminError as exc:
+            if not every:
+                raise
+            log.warning("admin %s: a reply left out: %s", verb, exc)
     return sorted(out, key=lambda r: r.component)

@@ -259,8 +259,10 @@ class Fabric(Protocol):
         """Wait until another session has a subscriber (or queryable) matching ``key``."""
 
     async def query(
-        self, selector: str, payload: bytes = b"", *, timeout: float = 2.0
-    ) -> list[Reply]: ...
+        self, selector: str, payload: bytes = b"", *, timeout: float = 2.0, partial: bool = False
+    ) -> list[Reply]:
+        """The replies to ``selector``. :class:`QueryError` when they are not all in
+        within ``timeout`` s, unless ``partial``: then the replies that came in time."""
 
     def declare_token(self, key: str) -> Token: ...
 

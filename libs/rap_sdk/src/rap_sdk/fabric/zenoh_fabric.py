@@ -639,6 +639,7 @@ class ZenohFabric:
         payload: bytes = b"",
         *,
         timeout: float = 2.0,
+        partial: bool = False,
     ) -> list[Reply]:
         self._life.check_open()
         if selector not in self._selectors:
@@ -667,13 +668,25 @@ class ZenohFabric:
         # (bench/knowledge). Our deadline below bounds the wait; a query left behind by
         # it is finalised by Zenoh's own default query timeout.
         try:
-            self.session.get(selector, self._callback(on_reply, on_drop), payload=payload or None)
+            if partial:  # replies as they come (Zenoh's default holds them to the end)
+                self.session.get(
+                    selector,
+                    self._callback(on_reply, on_drop),
+                    payload=payload or None,
+                    consolidation=zenoh.ConsolidationMode.NONE,
+                )
+            else:
+                self.session.get(
+                    selector, self._callback(on_reply, on_drop), payload=payload or None
+                )
         except zenoh.ZError as exc:
             raise FabricError(f"query {selector!r} failed: {exc}") from None
         try:
             async with asyncio.timeout(timeout):  # cheaper than an anyio scope, measured
                 await done
         except TimeoutError:
+            if partial:  # what came in time (a wildcard query: the quick answerers)
+                return list(replies)
             raise QueryError(
                 f"query {selector!r} got no complete answer within {timeout} s"
             ) from None
