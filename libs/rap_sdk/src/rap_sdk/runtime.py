@@ -18,6 +18,7 @@ import logging
 import os
 import signal
 import time
+from bisect import bisect_left
 from collections import deque
 from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from contextlib import asynccontextmanager
@@ -44,7 +45,8 @@ from .errors import BackpressureTimeout, ConfigError, LifecycleError, RapError, 
 from .fabric import Fabric, Outgoing, Sample, Subscription
 from .gc import IdleCollector
 from .knowledge import _MISSING, KnowledgeClient
-from .latency import Latency
+from .latency import BUCKETS as LATENCY_BUCKETS
+from .latency import RECENT, Latency
 from .node import Node, Route
 from .rejections import Rejections, Throttle
 
@@ -67,6 +69,7 @@ MAX_DIRECT_DEPTH = 16
 """How many handlers may run nested in one task by direct dispatch (a chain of local
 stages each handling what the one before sent); deeper, samples go through inboxes."""
 _depth = [0]
+LATENCY_MASK = RECENT - 1
 NODE_ENV = "RAP_COMPUTE_NODE"
 """The environment variable naming the compute node a process runs on."""
 SEND_TIMEOUT = 1.0
@@ -388,8 +391,8 @@ class NodeRuntime:
         """Seconds its handler calls took (rap status, metrics)."""
         self.last_cycle = b""
         """The cycle of its last handler call."""
-        self.last_call = 0
-        """When its last handler call ended, UTC ns (0: none yet)."""
+        self._last_end = 0.0
+        """``perf_counter()`` when its last handler call ended (0: none yet)."""
         self.last_failed = False
         """Whether its last handler call raised."""
         self.compute_node = os.environ.get(NODE_ENV, "")
@@ -717,9 +720,15 @@ class NodeRuntime:
                 self.last_failed = False
             finally:
                 self._calling -= 1
-                self.latency.observe(perf_counter() - t0)
+                t1 = perf_counter()
+                dt = t1 - t0
+                lat = self.latency  # Latency.observe, inline
+                lat.counts[bisect_left(LATENCY_BUCKETS, dt)] += 1
+                lat.sum += dt
+                lat.recent[lat.n & LATENCY_MASK] = dt
+                lat.n += 1
                 self.last_cycle = ctx.cycle
-                self.last_call = time.time_ns()
+                self._last_end = t1
                 if waited is not None:
                     waited.cancel()  # also when the call was cancelled
             if traced:
@@ -882,6 +891,13 @@ class NodeRuntime:
             )
 
     # -- administration (rap_sdk.admin serves these as verbs) ------------------------------
+
+    @property
+    def last_call(self) -> int:
+        """When its last handler call ended, UTC ns (0: none yet)."""
+        if not self._last_end:
+            return 0
+        return time.time_ns() - int((perf_counter() - self._last_end) * 1e9)
 
     @property
     def paused(self) -> bool:
