@@ -266,14 +266,15 @@ def export_aadl_cmd(
 
 def _register_commands() -> None:
     """Commands that live in modules of their own (each has ``register(app)``)."""
-    from . import admin_cli, generate_cli, logs_cli, topic_cli, trace_cli, up
+    from . import admin_cli, generate_cli, logs_cli, topic_cli, trace_cli, up, view_cli
 
     generate_cli.register(app)
     up.register(app)
     admin_cli.register(app)
+    view_cli.register(app)
+    topic_cli.register(app)
     logs_cli.register(app)
     trace_cli.register(app)
-    topic_cli.register(app)
 
 
 _register_commands()

@@ -37,6 +37,7 @@ __all__ = [
     "Reach",
     "RunDirOpt",
     "SystemOpt",
+    "find_model",
     "open_fabric",
     "resolve",
 ]
@@ -95,7 +96,9 @@ class Reach:
     """The model's plan, when one was given or found."""
 
 
-def _find_model(model: Path | None) -> Path | None:
+def find_model(model: Path | None) -> Path | None:
+    """The model file ``--model`` names (a folder: its model.yaml), else ./model.yaml
+    when there is one."""
     if model is not None:
         return model / "model.yaml" if model.is_dir() else model
     here = Path("model.yaml")
@@ -113,7 +116,7 @@ def resolve(
 
     from .up import STATE_FILE, _load, _running, read_state
 
-    file = _find_model(model)
+    file = find_model(model)
     plan = None
     if file is not None:
         file, doc = _load(file)
