@@ -41,4 +41,3 @@ class LogRecord(Message, frozen=True, omit_defaults=True):
     runtime line naming the node)."""
     exc: str = ""
     """The exception's traceback text, when the line carries one."""
-
