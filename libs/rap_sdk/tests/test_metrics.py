@@ -76,13 +76,14 @@ async def test_component_counters_latency_and_inbox_at_scrape_time() -> None:
 
     @mon.on_event("go")
     async def go(ctx: Context, msg: Go) -> None:
+        await ctx.kb.write("last", msg.n)
         if msg.n % 4 == 3:
             raise RuntimeError("every fourth call fails")
         await ctx.emit("next")
 
     @ana.on_event("next")
     async def nxt(ctx: Context) -> None:
-        pass
+        assert await ctx.kb.read("last", int) >= 0  # the version its trigger carries
 
     async with Harness(system=S) as h:
         group = await h.start(mon, ana)
@@ -116,6 +117,10 @@ async def test_component_counters_latency_and_inbox_at_scrape_time() -> None:
     # cycles per stage: the calls of that stage's components, returned or raised
     assert value(found, "rap_cycles_total", stage="monitor") == 8
     assert value(found, "rap_cycles_total", stage="analyse") == 6
+    # knowledge accesses of its handlers
+    assert value(found, "rap_kb_writes_total", **mine) == 8
+    assert value(found, "rap_kb_reads_total", **mine) == 0
+    assert value(found, "rap_kb_reads_total", component="ana", stage="analyse") == 6
     # the knowledge client of each running component is there
     assert value(found, "rap_knowledge_waits_total", **mine) == 0
 

@@ -71,6 +71,8 @@ METRICS: Mapping[str, str] = {
     "take in time.",
     "rap_records_lost_total": "Trace or rejection records of a component that could not be "
     "published.",
+    "rap_kb_reads_total": "Knowledge reads of a component's handlers.",
+    "rap_kb_writes_total": "Knowledge writes and deletes of a component's handlers.",
     "rap_inbox_depth": "Samples queued in a component's inboxes now (all routes).",
     "rap_handler_latency_seconds": "Seconds a component's handler calls took.",
     "rap_last_call_timestamp_seconds": "When a component's last handler call ended (UTC, "
@@ -195,6 +197,8 @@ class RuntimeCollector(Collector):
                 "dropped",
                 "send_timeouts",
                 "records_lost",
+                "kb_reads",
+                "kb_writes",
             )
         }
         reasons = _counter("rap_rejections_total", (*_COMPONENT, "reason"))

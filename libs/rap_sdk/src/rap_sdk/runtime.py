@@ -136,6 +136,10 @@ class NodeStats:
     ``SEND_TIMEOUT`` (that node did not get them; logged, rate-limited)."""
     records_lost: int = 0
     """Trace or rejection records that could not be published."""
+    kb_reads: int = 0
+    """Knowledge reads of its handlers."""
+    kb_writes: int = 0
+    """Knowledge writes and deletes of its handlers."""
 
 
 class Context:
@@ -288,7 +292,9 @@ class ContextKnowledge:
         timeout: float | None = None,
     ) -> Any:
         ctx = self._ctx
-        client = ctx._rt._knowledge or self.client
+        rt = ctx._rt
+        rt.stats.kb_reads += 1
+        client = rt._knowledge or self.client
         min_version = ctx.envelope.ctx.get(key, 0)
         value = client.value_here(key, type, min_version)  # most reads: no await
         if value is _MISSING:
@@ -314,7 +320,9 @@ class ContextKnowledge:
         self, key: str, value: Any, *, durable: bool = False, expect: int | None = None
     ) -> int:
         ctx = self._ctx
-        client = ctx._rt._knowledge or self.client
+        rt = ctx._rt
+        rt.stats.kb_writes += 1
+        client = rt._knowledge or self.client
         versions = ctx.envelope.ctx
         if versions:  # see _after_trigger
             client.clock.observe(max(versions.values()))
@@ -328,6 +336,7 @@ class ContextKnowledge:
 
     async def delete(self, key: str, *, durable: bool = False, expect: int | None = None) -> int:
         ctx = self._ctx
+        ctx._rt.stats.kb_writes += 1
         self._after_trigger()
         version = await self.client.delete(key, durable=durable, expect=expect)
         if ctx.written is None:
