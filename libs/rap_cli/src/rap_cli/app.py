@@ -25,7 +25,9 @@ app = typer.Typer(
     name="rap",
     help="RAP's toolkit: import designs (AADL, AADL-IL, RoboChart), check and show system "
     "models, export them as AADL, generate the package that runs a model (rap new, rap "
-    "generate) and run it (rap up, rap down, rap health).",
+    "generate), run it (rap up, rap down, rap health) and operate it while it runs (rap "
+    "status, config, pause, resume, restart, swap, snapshot, restore, topic, logs, trace, "
+    "record, replay, view).",
     no_args_is_help=True,
     rich_markup_mode="markdown",
     pretty_exceptions_enable=False,
@@ -72,7 +74,7 @@ RootOpt = Annotated[
 @app.callback()
 def _root() -> None:
     """RAP's toolkit: import designs, check, show and export system models, generate
-    their packages and run them."""
+    their packages, run them and operate them while they run."""
 
 
 def _load(paths: list[Path], fmt: str | None = None, root: str | None = None) -> CheckedModel:
