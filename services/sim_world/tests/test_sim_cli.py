@@ -191,3 +191,48 @@ def test_schema_mistakes_are_one_error_line(
         run_cli(sim_world.schema.cli, argv, prog="python -m sim_world.schema")
     assert exc.value.code == 2
     assert words in one_error_line(capsys.readouterr().err)
+
+
+@pytest.mark.zenoh
+def test_metrics_count_the_scans_it_published(files: Path) -> None:
+    from rap_sdk.fabric import free_port
+
+    port = free_port()
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "sim_world",
+            "--world",
+            str(files / "tiny.yaml"),
+            "--duration",
+            "30",
+            "--log-level",
+            "WARNING",
+            "--metrics",
+            f"127.0.0.1:{port}",
+        ],
+        cwd=files,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stdout is not None
+        assert proc.stdout.readline().strip() == "READY"
+        import time
+        import urllib.request
+
+        sent = 0.0
+        deadline = time.monotonic() + 20
+        while sent < 3 and time.monotonic() < deadline:
+            time.sleep(0.3)
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5) as r:
+                text = r.read().decode()
+            for line in text.splitlines():
+                if line.startswith("rap_sent_total{") and 'component="sim_world"' in line:
+                    sent = float(line.rsplit(" ", 1)[1])
+        assert sent >= 3, text  # a scan and an odometry sample every 0.2 s of real time
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=30)

@@ -19,6 +19,7 @@ import anyio
 import typer
 from rap_sdk import FabricError, ZenohConfig, ZenohFabric
 from rap_sdk.entry import check_endpoints, check_system, fail, run_cli, setup_logging
+from rap_sdk.metrics import RuntimeCollector, check_metrics_option, start_metrics
 
 from .config import SimConfig, SimConfigError
 from .service import RunSummary, open_service
@@ -54,10 +55,19 @@ def main(
     ] = None,
     rerun: Annotated[Path | None, typer.Option(help="Write a Rerun recording (.rrd).")] = None,
     log_level: Annotated[str, typer.Option(help="DEBUG, INFO, WARNING or ERROR.")] = "INFO",
+    metrics: Annotated[
+        str | None,
+        typer.Option(
+            metavar="HOST:PORT", help="Serve Prometheus metrics on http://HOST:PORT/metrics."
+        ),
+    ] = None,
 ) -> None:
     """Simulate the world and serve its robots' topics. Prints READY once serving, and a
-    summary (scans published; per robot collisions and waypoints reached) at the end."""
+    summary (scans published; per robot collisions and waypoints reached) at the end.
+
+    Example: python -m sim_world --world occlusion --system demo --metrics 127.0.0.1:9465"""
     setup_logging(log_level)
+    metrics = check_metrics_option(metrics)
     check_system(system)
     listen_on = check_endpoints("--listen", listen) or ["tcp/127.0.0.1:0"]
     connect_to = check_endpoints("--connect", connect)
@@ -80,7 +90,7 @@ def main(
         raise fail(str(exc)) from None
     zconf = ZenohConfig(listen=listen_on, connect=connect_to)
     try:
-        summary = anyio.run(_serve, config, spec, zconf)
+        summary = anyio.run(_serve, config, spec, zconf, metrics)
     except RerunFileError as exc:
         raise fail(f"--rerun {exc}") from None
     print(summary.render(), flush=True)
@@ -96,7 +106,9 @@ def _check_recording_path(path: Path) -> None:
         )
 
 
-async def _serve(config: SimConfig, world: WorldSpec, zconf: ZenohConfig) -> RunSummary:
+async def _serve(
+    config: SimConfig, world: WorldSpec, zconf: ZenohConfig, metrics: str | None = None
+) -> RunSummary:
     with anyio.open_signal_receiver(signal.SIGTERM, signal.SIGINT) as signals:
         async with contextlib.AsyncExitStack() as stack:
             try:
@@ -113,6 +125,16 @@ async def _serve(config: SimConfig, world: WorldSpec, zconf: ZenohConfig) -> Run
                 len(service.sim.robots),
                 config.world,
                 "lockstep" if config.lockstep else f"real time x{config.speed:g}",
+            )
+            # served from a daemon thread of its own until the process ends
+            start_metrics(
+                metrics,
+                [
+                    RuntimeCollector(
+                        lambda: [rt] if (rt := service.runtime) else [], system=config.system
+                    )
+                ],
+                what="sim_world",
             )
             print("READY", flush=True)
             async with anyio.create_task_group() as tg:
