@@ -13,7 +13,7 @@ from typing import Any
 import anyio
 import pytest
 from rap_schemas import keys
-from rap_schemas.admin import ComponentState, ConfigRequest, SwapRequest
+from rap_schemas.admin import ComponentState, ComponentSwap, ConfigRequest
 from rap_sdk import NodeGroup
 from rap_sdk.admin import call
 from rap_sdk.testing import Harness
@@ -139,7 +139,7 @@ async def test_swap_under_load_loses_nothing_handles_nothing_twice_and_hands_sta
     async def swap() -> None:
         await _wait(lambda: len(nodes.HANDLED["v1"]) >= 500, "load under way")
         (reply,) = await call(
-            harness.fabric, SYSTEM, "counter", "swap", SwapRequest(target="admin_nodes:v2")
+            harness.fabric, SYSTEM, "counter", "swap", ComponentSwap(target="admin_nodes:v2")
         )
         assert reply.ok, reply.message
         swapped_at.append(sent)
@@ -170,13 +170,13 @@ async def test_swap_is_refused_when_the_inputs_differ_and_the_old_one_keeps_runn
 ) -> None:
     await harness.start(nodes.v1())
     (reply,) = await call(
-        harness.fabric, SYSTEM, "counter", "swap", SwapRequest(target="admin_nodes:other_inputs")
+        harness.fabric, SYSTEM, "counter", "swap", ComponentSwap(target="admin_nodes:other_inputs")
     )
     assert not reply.ok
     assert "event/tick" in reply.message
     assert "event/tock" in reply.message
     (missing,) = await call(
-        harness.fabric, SYSTEM, "counter", "swap", SwapRequest(target="no_such_module:x")
+        harness.fabric, SYSTEM, "counter", "swap", ComponentSwap(target="no_such_module:x")
     )
     assert not missing.ok
     assert "cannot import" in missing.message

@@ -14,7 +14,7 @@ config    ``ConfigRequest``     ``config`` (get when ``values`` is empty, else s
 pause     -                     ``status`` (paused)
 resume    -                     ``status``
 restart   -                     ``status`` (a fresh instance, its state restored)
-swap      ``SwapRequest``       ``status`` (the new implementation, state handed over)
+swap      ``ComponentSwap``       ``status`` (the new implementation, state handed over)
 snapshot  -                     ``snapshot`` (also kept in knowledge)
 restore   ``RestoreRequest``    ``status``
 ========= ===================== =====================================================
@@ -34,10 +34,10 @@ __all__ = [
     "ComponentSnapshot",
     "ComponentState",
     "ComponentStatus",
+    "ComponentSwap",
     "ConfigRequest",
     "RestoreRequest",
     "SnapshotInfo",
-    "SwapRequest",
     "snapshot_key",
 ]
 
@@ -113,7 +113,7 @@ class ConfigRequest(msgspec.Struct, kw_only=True, omit_defaults=True):
     """Fields to set (validated against the node's config Struct); empty: get."""
 
 
-class SwapRequest(msgspec.Struct, kw_only=True):
+class ComponentSwap(msgspec.Struct, kw_only=True):
     target: str
     """``module:attr`` of the new implementation: a Node, or a function returning one."""
 

@@ -17,9 +17,9 @@ from rap_schemas.admin import (
     AdminReply,
     ComponentState,
     ComponentStatus,
+    ComponentSwap,
     ConfigRequest,
     RestoreRequest,
-    SwapRequest,
 )
 
 from .cli import FAILED, OK, failed, usage
@@ -353,7 +353,7 @@ def swap(
     if ":" not in target:
         usage(f"{target!r}: give MODULE:ATTR (e.g. my_robot.analysis_v2:analysis)")
     reach = resolve(model, system, connect, run_dir)
-    _report(_one(reach, component, "swap", SwapRequest(target=target), timeout), as_json)
+    _report(_one(reach, component, "swap", ComponentSwap(target=target), timeout), as_json)
 
 
 def restore(

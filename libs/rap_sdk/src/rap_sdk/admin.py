@@ -28,10 +28,10 @@ from rap_schemas.admin import (
     ComponentSnapshot,
     ComponentState,
     ComponentStatus,
+    ComponentSwap,
     ConfigRequest,
     RestoreRequest,
     SnapshotInfo,
-    SwapRequest,
     snapshot_key,
 )
 
@@ -265,7 +265,7 @@ async def _verb(rt: NodeRuntime, verb: str, payload: bytes) -> AdminReply:
             message="resumed" if done else "was not paused",
         )
     if verb == "swap":
-        swap: SwapRequest = _request(payload, SwapRequest)
+        swap: ComponentSwap = _request(payload, ComponentSwap)
         new = await anyio.to_thread.run_sync(load_implementation, swap.target)
         old = rt.node.implementation
         await rt.swap(new)
