@@ -41,8 +41,9 @@ import anyio
 import msgspec
 import pytest
 from rap_cli.recording import read_recording
+from rap_cli.testing import model_copy, rap_command, rap_up
 from rap_schemas import Envelope, LidarMask, SpinPlan, StageTrace, Verdict, keys
-from rap_sdk.fabric import CONFIG_ENV, free_port
+from rap_sdk.fabric import CONFIG_ENV
 from rap_sdk.testing import OutputLines, stop_process
 
 pytestmark = [pytest.mark.anyio, pytest.mark.zenoh, pytest.mark.slow, pytest.mark.timeout(120)]
@@ -64,22 +65,19 @@ occlusions:
 """
 
 
-def _rap() -> str:
-    rap = Path(sys.executable).with_name("rap")
-    assert rap.exists(), f"{rap}: the rap command is not installed next to {sys.executable}"
-    return str(rap)
-
-
 def _model(tmp_path: Path) -> Path:
-    text = MODEL.read_text()
-    assert text.count("tcp/edge:7447") >= 2
-    assert text.count(SIM_RUN) == 1, "the robot's run: line changed: update this test"
+    """The lidar model without its simulator (the test runs it, or the replay stands for
+    it), its planner's period long enough that a wide occlusion's plans are rejected."""
+    model = model_copy(MODEL, tmp_path, drop=[SIM_RUN])
+    text = model.read_text()
     assert text.count("    stage: plan\n") == 1
-    text = text.replace("tcp/edge:7447", f"tcp/edge:{free_port()}").replace(SIM_RUN, "")
-    text = text.replace("    stage: plan\n", "    stage: plan\n    config: {period: 4.0}\n")
-    model = tmp_path / "model.yaml"
-    model.write_text(text)
+    model.write_text(
+        text.replace("    stage: plan\n", "    stage: plan\n    config: {period: 4.0}\n")
+    )
     return model
+
+
+QUIET = ("--log-level", "WARNING")
 
 
 def _world(tmp_path: Path) -> Path:
@@ -92,35 +90,10 @@ def _world(tmp_path: Path) -> Path:
 
 
 @asynccontextmanager
-async def rap_up(model: Path, run: Path) -> AsyncIterator[OutputLines]:
-    """``rap up --all`` until both compute nodes are up; ``rap down`` on the way out."""
-    argv = [_rap(), "up", str(model), "--all", "--run-dir", str(run), "--log-level", "WARNING"]
-    async with (
-        await anyio.open_process(argv, stderr=subprocess.STDOUT) as up,
-        anyio.create_task_group() as tg,
-    ):
-        out = OutputLines(up)
-        tg.start_soon(out.pump)
-        try:
-            with anyio.fail_after(30):
-                for node in ("robot", "edge"):
-                    await out.line(f"compute node {node} is up")
-            yield out
-            down = await anyio.run_process(
-                [_rap(), "down", str(model), "--run-dir", str(run)], check=False
-            )
-            assert down.returncode == 0, down.stdout.decode() + down.stderr.decode()
-            with anyio.fail_after(30):
-                assert await up.wait() == 0, str(out)
-        finally:
-            await stop_process(up)
-
-
-@asynccontextmanager
 async def rap_record(model: Path, run: Path, out: Path) -> AsyncIterator[OutputLines]:
     """``rap record`` of the whole system; stopped with SIGINT (as Ctrl-C) on the way
     out, which must finish the file."""
-    argv = [_rap(), "record", "-o", str(out), "-m", str(model), "--run-dir", str(run)]
+    argv = [rap_command(), "record", "-o", str(out), "-m", str(model), "--run-dir", str(run)]
     async with (
         await anyio.open_process(argv, stderr=subprocess.STDOUT) as rec,
         anyio.create_task_group() as tg,
@@ -259,7 +232,7 @@ async def test_a_recorded_run_replayed_into_a_fresh_loop_makes_the_same_decision
 
     # 1. the loop with the simulator, recorded
     run1 = tmp_path / "run1"
-    async with rap_up(model, run1), rap_record(model, run1, first):
+    async with rap_up(model, run1, args=QUIET), rap_record(model, run1, first):
         sim = await anyio.run_process(
             [
                 sys.executable,
@@ -284,10 +257,10 @@ async def test_a_recorded_run_replayed_into_a_fresh_loop_makes_the_same_decision
 
     # 2. a fresh loop (no simulator), fed the recorded managed-system data, recorded
     run2 = tmp_path / "run2"
-    async with rap_up(model, run2), rap_record(model, run2, second):
+    async with rap_up(model, run2, args=QUIET), rap_record(model, run2, second):
         replay = await anyio.run_process(
             [
-                _rap(),
+                rap_command(),
                 "replay",
                 str(first),
                 "--only",

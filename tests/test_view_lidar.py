@@ -8,7 +8,6 @@ followed from its scan to the plan at the robot.
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
 import sys
@@ -17,8 +16,9 @@ from typing import Any
 
 import anyio
 import pytest
+from rap_cli.testing import model_copy, rap_up
 from rap_schemas import Verdict, keys
-from rap_sdk.fabric import CONFIG_ENV, free_port
+from rap_sdk.fabric import CONFIG_ENV
 from rap_sdk.testing import Harness, OutputLines, Record, stop_process
 
 pytestmark = [pytest.mark.anyio, pytest.mark.zenoh, pytest.mark.slow, pytest.mark.timeout(150)]
@@ -66,29 +66,17 @@ async def test_rap_view_records_the_case_under_rap_up(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     run, out = tmp_path / "run", tmp_path / "view.rrd"
-    text = MODEL.read_text()
-    copy = tmp_path / "model.yaml"  # the edge on a free port, as test_rap_up_lidar does
-    copy.write_text(text.replace("tcp/edge:7447", f"tcp/edge:{free_port()}"))
-    env = {**os.environ, "RERUN_ANALYTICS": "0"}
-    env.pop(CONFIG_ENV, None)
+    copy = model_copy(MODEL, tmp_path)
+    monkeypatch.setenv("RERUN_ANALYTICS", "0")
+    monkeypatch.delenv(CONFIG_ENV, raising=False)
     rap = _bin("rap")
-    up = await anyio.open_process(
-        [rap, "up", str(copy), "--all", "--run-dir", str(run)], stderr=subprocess.STDOUT, env=env
-    )
-    view: Any = None
-    try:
-        async with anyio.create_task_group() as tg:
-            up_out = OutputLines(up)
-            tg.start_soon(up_out.pump)
-            with anyio.fail_after(30):
-                for node in ("robot", "edge"):
-                    await up_out.line(f"compute node {node} is up")
-            view = await anyio.open_process(
-                [rap, "view", "-m", str(copy), "--run-dir", str(run), "--save", str(out)],
-                stdout=subprocess.PIPE,
-                stderr=subprocess.STDOUT,
-                env=env,
-            )
+    async with rap_up(copy, run), anyio.create_task_group() as tg:
+        view = await anyio.open_process(
+            [rap, "view", "-m", str(copy), "--run-dir", str(run), "--save", str(out)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+        )
+        try:
             lines = OutputLines(view)
             tg.start_soon(lines.pump)
             await lines.line("viewing system demo through the routers of rap up")
@@ -100,15 +88,9 @@ async def test_rap_view_records_the_case_under_rap_up(
             view.send_signal(signal.SIGINT)  # it takes what is in flight, then closes
             with anyio.fail_after(30):
                 code = await view.wait()
-            down = await anyio.run_process([rap, "down", str(copy), "--run-dir", str(run)])
-            assert down.returncode == 0
-            with anyio.fail_after(30):
-                await up.wait()
-            tg.cancel_scope.cancel()
-    finally:
-        if view is not None:
+        finally:
             await stop_process(view)
-        await stop_process(up)
+        tg.cancel_scope.cancel()
     said = "\n".join(lines.lines)
     assert code == 0, said
     assert f"wrote {out}" in said, said

@@ -15,19 +15,18 @@ from __future__ import annotations
 
 import json
 import re
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
 import anyio
 import pytest
 from adaptation_manager import Manager, Registry, serve_dashboard
+from rap_cli.testing import model_copy, rap_up
 from rap_schemas import LogRecord, Rejection, keys
 from rap_schemas.admin import ComponentState
 from rap_sdk import admin, run_nodes
-from rap_sdk.fabric import CONFIG_ENV, Fabric, free_port
-from rap_sdk.testing import Harness, OutputLines, require_binary, stop_process
+from rap_sdk.fabric import CONFIG_ENV, Fabric
+from rap_sdk.testing import Harness, require_binary
 
 from services.adaptation_manager.tests.loop import loop_nodes
 
@@ -52,12 +51,6 @@ def _chromium() -> str:
         "chromium", hint="Debian's chromium package (.ci/packages installs it: apt-get install "
         "chromium)"
     )  # fmt: skip
-
-
-def _rap() -> str:
-    rap = Path(sys.executable).with_name("rap")
-    assert rap.exists(), f"{rap}: the rap command is not installed next to {sys.executable}"
-    return str(rap)
 
 
 async def _state(fabric: Fabric, component: str) -> ComponentState:
@@ -87,81 +80,60 @@ async def test_the_page_shows_the_lidar_loop_and_pauses_and_resumes_a_component(
     from playwright.async_api import async_playwright, expect
 
     run = tmp_path / "run"
-    text = MODEL.read_text()
-    assert text.count("tcp/edge:7447") >= 2
-    copy = tmp_path / "model.yaml"
-    copy.write_text(text.replace("tcp/edge:7447", f"tcp/edge:{free_port()}"))
-    argv = [_rap(), "up", str(copy), "--all", "--run-dir", str(run)]
-    async with (
-        await anyio.open_process(argv, stderr=subprocess.STDOUT) as up,
-        anyio.create_task_group() as tg,
-    ):
-        out = OutputLines(up)
-        tg.start_soon(out.pump)
-        try:
-            with anyio.fail_after(60):
-                for node in ("robot", "edge"):
-                    await out.line(f"compute node {node} is up")
-                _, found = await out.match(r"dashboard: (http://127\.0\.0\.1:\d+/)")
-            url = found.group(1)
-            edge = json.loads((run / "edge" / "up.json").read_text())
-            assert edge["dashboard"] == url
-            assert "manager" in {c["name"] for c in edge["children"]}
-            assert json.loads((run / "robot" / "up.json").read_text())["dashboard"] is None
+    async with rap_up(model_copy(MODEL, tmp_path), run, timeout=60) as out:
+        with anyio.fail_after(60):
+            _, found = await out.match(r"dashboard: (http://127\.0\.0\.1:\d+/)")
+        url = found.group(1)
+        edge = json.loads((run / "edge" / "up.json").read_text())
+        assert edge["dashboard"] == url
+        assert "manager" in {c["name"] for c in edge["children"]}
+        assert json.loads((run / "robot" / "up.json").read_text())["dashboard"] is None
 
-            monkeypatch.setenv(CONFIG_ENV, str(run / "robot" / "zenoh-client.json5"))
-            async with (
-                Harness(system=SYSTEM, fabric="zenoh", timeout=30) as h,
-                async_playwright() as pw,
-            ):
-                browser = await pw.chromium.launch(executable_path=chromium, headless=True)
-                try:
-                    page = await browser.new_page()
-                    await page.goto(url)
-                    await expect(page.locator("#system")).to_have_text(SYSTEM)
-                    await expect(page.locator("#link")).to_have_attribute(
-                        "data-state", "connected", timeout=UI_TIMEOUT
+        monkeypatch.setenv(CONFIG_ENV, str(run / "robot" / "zenoh-client.json5"))
+        async with (
+            Harness(system=SYSTEM, fabric="zenoh", timeout=30) as h,
+            async_playwright() as pw,
+        ):
+            browser = await pw.chromium.launch(executable_path=chromium, headless=True)
+            try:
+                page = await browser.new_page()
+                await page.goto(url)
+                await expect(page.locator("#system")).to_have_text(SYSTEM)
+                await expect(page.locator("#link")).to_have_attribute(
+                    "data-state", "connected", timeout=UI_TIMEOUT
+                )
+                for component, node in WHERE.items():
+                    row = page.locator(
+                        f'section.node[data-node="{node}"] tr[data-component="{component}"]'
                     )
-                    for component, node in WHERE.items():
-                        row = page.locator(
-                            f'section.node[data-node="{node}"] tr[data-component="{component}"]'
-                        )
-                        await expect(row).to_have_attribute(
-                            "data-state", re.compile("^(idle|active)$"), timeout=UI_TIMEOUT
-                        )
-                        await expect(row.locator('td[data-cell="name"]')).to_have_text(component)
-                    await expect(
-                        page.locator('section.node[data-node="edge"] [data-field="node-name"]')
-                    ).to_have_text("edge")
-
-                    monitor = page.locator('tr[data-component="monitor"]')
-                    await _click(page, "monitor", "pause")
-                    assert await _state(h.fabric, "monitor") is ComponentState.PAUSED
-                    await expect(monitor).to_have_attribute("data-state", "paused")
-                    await expect(monitor.locator('[data-field="state"]')).to_have_text("paused")
-
-                    await _click(page, "monitor", "resume")
-                    assert await _state(h.fabric, "monitor") in (
-                        ComponentState.IDLE,
-                        ComponentState.ACTIVE,
-                    )
-                    await expect(monitor).to_have_attribute(
+                    await expect(row).to_have_attribute(
                         "data-state", re.compile("^(idle|active)$"), timeout=UI_TIMEOUT
                     )
-                    # the loop runs on: cycles reach the page's timeline
-                    await expect(page.locator("#cycles tbody tr").first).to_be_visible(
-                        timeout=UI_TIMEOUT
-                    )
-                finally:
-                    await browser.close()
-            down = await anyio.run_process(
-                [_rap(), "down", str(copy), "--run-dir", str(run)], check=False
-            )
-            assert down.returncode == 0, down.stdout.decode() + down.stderr.decode()
-            with anyio.fail_after(30):
-                assert await up.wait() == 0, str(out)
-        finally:
-            await stop_process(up)
+                    await expect(row.locator('td[data-cell="name"]')).to_have_text(component)
+                await expect(
+                    page.locator('section.node[data-node="edge"] [data-field="node-name"]')
+                ).to_have_text("edge")
+
+                monitor = page.locator('tr[data-component="monitor"]')
+                await _click(page, "monitor", "pause")
+                assert await _state(h.fabric, "monitor") is ComponentState.PAUSED
+                await expect(monitor).to_have_attribute("data-state", "paused")
+                await expect(monitor.locator('[data-field="state"]')).to_have_text("paused")
+
+                await _click(page, "monitor", "resume")
+                assert await _state(h.fabric, "monitor") in (
+                    ComponentState.IDLE,
+                    ComponentState.ACTIVE,
+                )
+                await expect(monitor).to_have_attribute(
+                    "data-state", re.compile("^(idle|active)$"), timeout=UI_TIMEOUT
+                )
+                # the loop runs on: cycles reach the page's timeline
+                await expect(page.locator("#cycles tbody tr").first).to_be_visible(
+                    timeout=UI_TIMEOUT
+                )
+            finally:
+                await browser.close()
 
 
 @pytest.mark.timeout(60)
