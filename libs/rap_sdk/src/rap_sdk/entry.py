@@ -22,7 +22,8 @@ from __future__ import annotations
 import logging
 import sys
 from collections.abc import Callable, Iterable, Sequence
-from typing import Any, NoReturn
+from pathlib import Path
+from typing import Annotated, Any, NoReturn
 
 import typer
 from rap_schemas import keys
@@ -32,6 +33,9 @@ from typer.exceptions import TyperException
 __all__ = [
     "USAGE",
     "EntryError",
+    "LogFileOpt",
+    "LogRedisOpt",
+    "MetricsOpt",
     "check_endpoints",
     "check_system",
     "fail",
@@ -46,6 +50,19 @@ USAGE = 2
 """Exit code of bad usage or unreadable input."""
 
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+
+# the options every RAP service takes for its metrics and structured logs
+MetricsOpt = Annotated[
+    str | None,
+    typer.Option(metavar="HOST:PORT", help="Serve Prometheus metrics on http://HOST:PORT/metrics."),
+]
+LogFileOpt = Annotated[
+    Path | None, typer.Option(help="Also log JSON lines to this file (rotated, bounded).")
+]
+LogRedisOpt = Annotated[
+    str | None,
+    typer.Option(metavar="URL", help="Also log to the Redis stream rap:<system>:log."),
+]
 
 
 class EntryError(Exception):

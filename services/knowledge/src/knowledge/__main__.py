@@ -19,7 +19,17 @@ import anyio
 import typer
 from rap_schemas.yamlconf import YamlError, load_yaml, read_text_file
 from rap_sdk import FabricError, LifecycleError, ZenohConfig, ZenohFabric
-from rap_sdk.entry import check_endpoints, check_system, fail, leaf, run_cli, setup_logging
+from rap_sdk.entry import (
+    LogFileOpt,
+    LogRedisOpt,
+    MetricsOpt,
+    check_endpoints,
+    check_system,
+    fail,
+    leaf,
+    run_cli,
+    setup_logging,
+)
 from rap_sdk.knowledge import SERVICE_NODE
 from rap_sdk.logs import LogContext, check_redis_url, open_file_log, publish_logs
 from rap_sdk.metrics import KnowledgeServiceCollector, check_metrics_option, start_metrics
@@ -58,19 +68,9 @@ def main(
         typer.Option("--config", help="YAML KnowledgeConfig; when given, it sets everything."),
     ] = None,
     log_level: Annotated[str, typer.Option(help="Logging level.")] = "INFO",
-    metrics: Annotated[
-        str | None,
-        typer.Option(
-            metavar="HOST:PORT", help="Serve Prometheus metrics on http://HOST:PORT/metrics."
-        ),
-    ] = None,
-    log_file: Annotated[
-        Path | None, typer.Option(help="Also log JSON lines to this file (rotated, bounded).")
-    ] = None,
-    log_redis: Annotated[
-        str | None,
-        typer.Option(metavar="URL", help="Also log to the Redis stream rap:<system>:log."),
-    ] = None,
+    metrics: MetricsOpt = None,
+    log_file: LogFileOpt = None,
+    log_redis: LogRedisOpt = None,
 ) -> None:
     """Serve knowledge for one system until SIGTERM or SIGINT.
 

@@ -15,7 +15,17 @@ import typer
 import zenoh
 from rap_schemas import PlanError, load_plan
 from rap_sdk import FabricError, LifecycleError, ZenohConfig, ZenohFabric
-from rap_sdk.entry import check_endpoints, check_system, fail, leaf, run_cli, setup_logging
+from rap_sdk.entry import (
+    LogFileOpt,
+    LogRedisOpt,
+    MetricsOpt,
+    check_endpoints,
+    check_system,
+    fail,
+    leaf,
+    run_cli,
+    setup_logging,
+)
 from rap_sdk.logs import LogContext, check_redis_url, open_file_log, publish_logs
 from rap_sdk.metrics import RuntimeCollector, check_metrics_option, start_metrics
 from rap_sdk.peers import PeerWatch
@@ -47,19 +57,9 @@ def main(
     ] = None,
     system: Annotated[str | None, typer.Option(help="System name (default: the plan's).")] = None,
     log_level: Annotated[str, typer.Option(help="Logging level.")] = "INFO",
-    metrics: Annotated[
-        str | None,
-        typer.Option(
-            metavar="HOST:PORT", help="Serve Prometheus metrics on http://HOST:PORT/metrics."
-        ),
-    ] = None,
-    log_file: Annotated[
-        Path | None, typer.Option(help="Also log JSON lines to this file (rotated, bounded).")
-    ] = None,
-    log_redis: Annotated[
-        str | None,
-        typer.Option(metavar="URL", help="Also log to the Redis stream rap:<system>:log."),
-    ] = None,
+    metrics: MetricsOpt = None,
+    log_file: LogFileOpt = None,
+    log_redis: LogRedisOpt = None,
 ) -> None:
     """Run a compute node's share of a deployment plan. A bad plan exits with code 2.
 

@@ -18,7 +18,7 @@ from typing import Annotated
 import anyio
 import typer
 from rap_sdk import FabricError, ZenohConfig, ZenohFabric
-from rap_sdk.entry import check_endpoints, check_system, fail, run_cli, setup_logging
+from rap_sdk.entry import MetricsOpt, check_endpoints, check_system, fail, run_cli, setup_logging
 from rap_sdk.metrics import RuntimeCollector, check_metrics_option, start_metrics
 
 from .config import SimConfig, SimConfigError
@@ -55,12 +55,7 @@ def main(
     ] = None,
     rerun: Annotated[Path | None, typer.Option(help="Write a Rerun recording (.rrd).")] = None,
     log_level: Annotated[str, typer.Option(help="DEBUG, INFO, WARNING or ERROR.")] = "INFO",
-    metrics: Annotated[
-        str | None,
-        typer.Option(
-            metavar="HOST:PORT", help="Serve Prometheus metrics on http://HOST:PORT/metrics."
-        ),
-    ] = None,
+    metrics: MetricsOpt = None,
 ) -> None:
     """Simulate the world and serve its robots' topics. Prints READY once serving, and a
     summary (scans published; per robot collisions and waypoints reached) at the end.

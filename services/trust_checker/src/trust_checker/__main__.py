@@ -35,7 +35,16 @@ import anyio
 import typer
 from rap_schemas import keys
 from rap_sdk import FabricError, ZenohConfig, ZenohFabric
-from rap_sdk.entry import check_endpoints, check_system, fail, run_cli, setup_logging
+from rap_sdk.entry import (
+    LogFileOpt,
+    LogRedisOpt,
+    MetricsOpt,
+    check_endpoints,
+    check_system,
+    fail,
+    run_cli,
+    setup_logging,
+)
 from rap_sdk.errors import ConfigError
 from rap_sdk.logs import LogContext, check_redis_url, open_file_log, publish_logs
 from rap_sdk.metrics import TrustCollector, VerdictCounts, check_metrics_option, start_metrics
@@ -130,20 +139,9 @@ def main(
         str, typer.Option(help="Tick policy: message, or window:<duration> (window:10ms).")
     ] = "message",
     log_level: Annotated[str, typer.Option(help="Logging level.")] = "INFO",
-    metrics: Annotated[
-        str | None,
-        typer.Option(
-            metavar="HOST:PORT",
-            help="Live modes: serve Prometheus metrics on http://HOST:PORT/metrics.",
-        ),
-    ] = None,
-    log_file: Annotated[
-        Path | None, typer.Option(help="Also log JSON lines to this file (rotated, bounded).")
-    ] = None,
-    log_redis: Annotated[
-        str | None,
-        typer.Option(metavar="URL", help="Also log to the Redis stream rap:<system>:log."),
-    ] = None,
+    metrics: MetricsOpt = None,
+    log_file: LogFileOpt = None,
+    log_redis: LogRedisOpt = None,
 ) -> None:
     """Run a trust spec. A mistake exits with code 2 and one 'error:' line.
 
