@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from typing import Annotated
 
 import msgspec
 import numpy as np
@@ -45,8 +46,10 @@ Mask = npt.NDArray[np.bool_]
 
 
 class AnalysisConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
-    window: int = 3
-    threshold: float = 0.3
+    window: Annotated[int, msgspec.Meta(ge=1, le=10_000)] = 3
+    """Scans the occlusion probability is taken over."""
+    threshold: Annotated[float, msgspec.Meta(ge=0.0, le=1.0)] = 0.3
+    """A beam whose probability of no return is above this counts as occluded."""
     radius: float = math.pi / 48
     """Half-width of the opening/closing element, rad (3.75 degrees)."""
     ignore_from: float = 3 * math.pi / 4

@@ -60,10 +60,24 @@ def _one(
         usage(f"{component!r}: name one component (rap status lists them)")
     replies = anyio.run(_call, reach, component, verb, request, timeout)
     if not replies:
+        hint = "is it running? `rap status` lists what answers"
+        plan = reach.plan
+        if plan is not None:
+            spec = plan.components.get(component)
+            if spec is None:
+                hint = (
+                    f"it is not a component of the model; its components: "
+                    f"{', '.join(plan.components)}"
+                )
+            elif spec.module is None:
+                hint = (
+                    "it runs outside RAP's runners (external or a run: command): if it "
+                    "uses the SDK it answers under its own Node's name, which `rap status` "
+                    "lists"
+                )
         failed(
-            f"no component {component!r} answers in system {reach.system!r} within "
-            f"{timeout:g} s (through {reach.where}) - is it running? `rap status` lists "
-            "what runs"
+            f"no component {component!r} answers in system {reach.system!r} (through "
+            f"{reach.where}) - {hint}"
         )
     if len(replies) > 1:
         failed(f"{len(replies)} components named {component!r} answered; names must be unique")
@@ -370,7 +384,8 @@ def restore(
 ) -> None:
     """Restore a component's state from a snapshot kept in knowledge (`rap snapshot`).
 
-    Example: `rap restore analysis` (the latest), `rap restore analysis --version 17`
+    Example: `rap restore analysis` (the latest), `rap restore analysis --version V` (V as
+    `rap snapshot` printed it)
     """
     if version < 0:
         usage(f"--version {version}: give a version >= 0")

@@ -382,9 +382,19 @@ def logs_cmd(
             )
         entries, bad = anyio.run(anyio.to_thread.run_sync, read_files, files)
         where = str(base)
+    shown = 0
     for e in entries:
         if keep(e):
             typer.echo(as_json(e) if raw else render(e))
+            shown += 1
+    if not shown and entries:
+        typer.echo(
+            f"rap: no record of {len(entries)} in {where} matches"
+            + (f" component {component!r}" if component else "")
+            + (f", level {name} or above" if name != LEVELS[0] else "")
+            + (" since then" if since_ns else ""),
+            err=True,
+        )
     if bad:
         typer.echo(f"rap: warning: {bad} line(s) of {where} could not be read", err=True)
     raise typer.Exit(OK)

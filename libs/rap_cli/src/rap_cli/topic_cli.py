@@ -791,8 +791,10 @@ async def _record(reach: Reach, exprs: list[str], output: Path, duration: float 
                 st = await anyio.to_thread.run_sync(rec.close)
             progress.done()
     why = f" ({said[0]})" if said else ""
+    on_disk = (await anyio.Path(output).stat()).st_size
     summary = (
-        f"{output}: {st.samples} samples on {st.keys} keys, {_size(st.bytes)}"
+        f"{output}: {st.samples} samples on {st.keys} keys, {_size(st.bytes)} of "
+        f"envelopes ({_size(on_disk)} on disk, compressed)"
         + (f", {st.not_envelopes} not envelopes" if st.not_envelopes else "")
         + (f", {st.dropped} dropped (the writer could not keep up)" if st.dropped else "")
     )

@@ -149,8 +149,13 @@ def trace(
 
     Example: `rap trace --last --executed -m examples/lidar_occlusion/model.yaml`, or
     `rap trace 019a3c5e -s demo -c tcp/127.0.0.1:7447 --json`."""
-    if (cycle is None) == (not last):
-        usage("give a CYCLE (its hex uid, or a unique prefix of it) or --last, not both")
+    if cycle is None and not last:
+        usage(
+            "give a CYCLE (its hex uid, a unique prefix of it, or ..END as rap status "
+            "shows it) or --last"
+        )
+    if cycle is not None and last:
+        usage("give a CYCLE or --last, not both")
     if executed and not last:
         usage("--executed goes with --last")
     if timeout <= 0:
