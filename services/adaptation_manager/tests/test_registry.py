@@ -331,6 +331,20 @@ def test_the_history_is_bounded_and_a_cycle_that_left_it_is_not_checked() -> Non
     assert reg.check_due() == 3  # only the three it still holds
 
 
+def test_an_executed_cycle_outlives_the_history_for_rap_trace() -> None:
+    reg, _, _ = registry(history=3, cycle_timeout=1.0)
+    done = uid(100)
+    reg.trace(call("x", Stage.EXECUTE, done, "k", done, T0))
+    for n in range(10):  # cycles that end at the analysis push it out of the history
+        c = uid(n)
+        reg.trace(call("m", Stage.MONITOR, c, "k", c, T0))
+    assert done not in reg.cycles
+    last = reg.last_complete(executed=True)
+    assert last is not None
+    assert last.uid == done
+    assert reg.find(done.hex()) == [last]
+
+
 @pytest.mark.parametrize("bad", [{"history": 0}, {"cycle_timeout": 0.0}, {"tail": 0}])
 def test_bad_bounds_are_refused(bad: dict[str, Any]) -> None:
     with pytest.raises(ValueError, match="must be"):

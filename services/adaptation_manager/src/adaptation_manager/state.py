@@ -246,6 +246,10 @@ class _Cycle:
         return any(c.stage == "execute" and c.ended and c.ok for c in self.calls.values())
 
 
+EXECUTED_KEPT = 100
+"""Executed cycles kept once they have left the cycle history."""
+
+
 @dataclass(slots=True)
 class _Plan:
     uid: bytes
@@ -320,6 +324,9 @@ class Registry:
         self.rejected_event = rejected_event
         self.components: dict[str, ComponentView] = {}
         self.cycles: OrderedDict[bytes, _Cycle] = OrderedDict()
+        self.executed_kept: deque[_Cycle] = deque(maxlen=min(history, EXECUTED_KEPT))
+        """Cycles in which a plan reached the execute stage, kept past the history (most
+        cycles of a loop end at the analysis: plans would soon fall out of it)."""
         self.plans: OrderedDict[bytes, _Plan] = OrderedDict()
         self._by_verdict: dict[bytes, bytes] = {}
         """Approving verdict envelope uid -> plan uid."""
@@ -463,7 +470,9 @@ class Registry:
             self._due.append((cyc.due, uid))
             self.metrics.cycles.inc()
             while len(self.cycles) > self.history:
-                self.cycles.popitem(last=False)  # its deadline entry is skipped when due
+                _, old = self.cycles.popitem(last=False)  # its deadline entry is skipped
+                if old.executed:
+                    self.executed_kept.append(old)  # rap trace --executed finds it later
         return cyc
 
     def trace(self, rec: StageTrace) -> None:
@@ -841,9 +850,10 @@ class Registry:
         """Cycles in the history whose hex uid starts (``suffix``: ends) with ``digits``,
         newest first."""
         d = digits.lower()
+        every = [*reversed(self.cycles.values()), *reversed(self.executed_kept)]
         if suffix:
-            return [c for c in reversed(self.cycles.values()) if c.hex.endswith(d)]
-        return [c for c in reversed(self.cycles.values()) if c.hex.startswith(d)]
+            return [c for c in every if c.hex.endswith(d)]
+        return [c for c in every if c.hex.startswith(d)]
 
     def last_complete(self, *, executed: bool = False, quiet: float = 0.5) -> _Cycle | None:
         """The newest cycle with nothing outstanding and no record for ``quiet`` s (or
@@ -856,6 +866,8 @@ class Registry:
                 continue
             if cyc.executed or now - cyc.last_activity >= quiet:
                 return cyc
+        if executed and self.executed_kept:
+            return self.executed_kept[-1]
         return None
 
     def chain(self, cyc: _Cycle) -> CycleTrace:
