@@ -350,9 +350,9 @@ def serve_admin(rt: NodeRuntime) -> Queryable:
             verb == "config" and reply.config is not None and not reply.message
         )
         (log.warning if not reply.ok else log.debug if reads else log.info)(
-            "admin %s %s: %s%s",
-            verb,
+            "node %s: admin %s %s%s",  # the node first: structured logs name it
             name,
+            verb,
             "done" if reply.ok else "refused",
             f": {reply.message}" if reply.message else "",
         )
