@@ -68,3 +68,14 @@ def other_inputs() -> Node:
         return None
 
     return node
+
+
+def source() -> Node:
+    """Sends a ``tick`` for every ``go`` it gets: a local sender (direct dispatch)."""
+    node = Node("source", stage="monitor")
+
+    @node.on_event("go")
+    async def on_go(ctx: Context, go: Tick) -> None:
+        await ctx.emit("tick", Tick(n=go.n))
+
+    return node

@@ -1,7 +1,8 @@
 """The admin verbs of a running component (rap_sdk.admin), called over the fabric as an
 operator does: status, config get/set, pause/resume, swap under load (no event lost,
-none handled twice, the state handed over). Snapshot/restore through knowledge are in
-tests/test_admin_knowledge.py (they need the knowledge service)."""
+none handled twice, the state handed over). Snapshot, restore and a restart from a
+snapshot, through knowledge, are in tests/test_admin_knowledge.py (they need the
+knowledge service)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ import anyio
 import pytest
 from rap_schemas import keys
 from rap_schemas.admin import ComponentState, ComponentSwap, ConfigRequest
-from rap_sdk import NodeGroup
+from rap_sdk import Context, Node, NodeGroup
 from rap_sdk.admin import call
 from rap_sdk.testing import Harness
 
@@ -221,3 +222,50 @@ async def test_restart_takes_the_token_down_and_up_and_keeps_the_state(
     assert rt.node is nodes.LAST["v1"].node
     await harness.emit("tick", nodes.Tick(n=3))
     await _wait(lambda: nodes.LAST["v1"].count == 4, "the fresh instance handles")
+
+
+async def test_after_a_swap_local_senders_reach_the_new_implementation(
+    harness: Harness, nodes: Any
+) -> None:
+    group = await harness.start(nodes.source(), nodes.v1())
+    for i in range(3):
+        await harness.emit("go", nodes.Tick(n=i))
+    await _wait(lambda: len(nodes.HANDLED["v1"]) == 3, "v1 handles the source's ticks")
+    await group["counter"].swap(nodes.v2())
+    for i in range(3, 6):
+        await harness.emit("go", nodes.Tick(n=i))
+    await _wait(lambda: len(nodes.HANDLED["v2"]) == 3, "v2 handles them after the swap")
+    assert nodes.HANDLED["v1"] == [0, 1, 2]
+    assert nodes.HANDLED["v2"] == [3, 4, 5]
+    assert nodes.LAST["v2"].count == 6
+
+
+async def test_status_answers_while_a_pause_waits_for_a_long_handler(nodes: Any) -> None:
+    slow = Node("slow", stage="monitor")
+    release = anyio.Event()
+
+    @slow.on_event("tick", type=nodes.Tick)
+    async def on_tick(ctx: Context) -> None:
+        await release.wait()
+
+    async with Harness(system=SYSTEM, timeout=10) as h:
+        group = await h.start(slow)
+        await h.emit("tick", nodes.Tick(n=1))
+        await _wait(lambda: group["slow"].busy and group["slow"].inbox_depth == 0, "running")
+        async with anyio.create_task_group() as tg:
+            replies: list[Any] = []
+
+            async def pause() -> None:
+                replies.extend(await call(h.fabric, SYSTEM, "slow", "pause", timeout=10))
+
+            tg.start_soon(pause)
+            await anyio.sleep(0.2)
+            with anyio.fail_after(2):  # not behind the pause
+                (st,) = await call(h.fabric, SYSTEM, "slow", "status")
+            assert st.status is not None
+            assert st.status.state is ComponentState.ACTIVE
+            release.set()
+        (paused,) = replies
+        assert paused.ok
+        assert paused.status is not None
+        assert paused.status.state is ComponentState.PAUSED

@@ -13,7 +13,7 @@ status    -                     ``status``
 config    ``ConfigRequest``     ``config`` (get when ``values`` is empty, else set)
 pause     -                     ``status`` (paused)
 resume    -                     ``status``
-restart   -                     ``status`` (a fresh instance, its state restored)
+restart   ``RestartRequest``    ``status`` (a fresh instance, its state kept or restored)
 swap      ``ComponentSwap``       ``status`` (the new implementation, state handed over)
 snapshot  -                     ``snapshot`` (also kept in knowledge)
 restore   ``RestoreRequest``    ``status``
@@ -36,6 +36,7 @@ __all__ = [
     "ComponentStatus",
     "ComponentSwap",
     "ConfigRequest",
+    "RestartRequest",
     "RestoreRequest",
     "SnapshotInfo",
     "snapshot_key",
@@ -116,6 +117,11 @@ class ConfigRequest(msgspec.Struct, kw_only=True, omit_defaults=True):
 class ComponentSwap(msgspec.Struct, kw_only=True):
     target: str
     """``module:attr`` of the new implementation: a Node, or a function returning one."""
+
+
+class RestartRequest(msgspec.Struct, kw_only=True, omit_defaults=True):
+    from_snapshot: bool = False
+    """Restore the latest snapshot kept in knowledge (else: the state it has)."""
 
 
 class RestoreRequest(msgspec.Struct, kw_only=True, omit_defaults=True):

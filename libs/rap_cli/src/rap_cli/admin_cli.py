@@ -19,6 +19,7 @@ from rap_schemas.admin import (
     ComponentStatus,
     ComponentSwap,
     ConfigRequest,
+    RestartRequest,
     RestoreRequest,
 )
 
@@ -370,6 +371,34 @@ def swap(
     _report(_one(reach, component, "swap", ComponentSwap(target=target), timeout), as_json)
 
 
+def restart(
+    component: ComponentArg,
+    from_snapshot: Annotated[
+        bool,
+        typer.Option(
+            "--from-snapshot",
+            help="Restore its latest snapshot in knowledge (else it keeps the state it has).",
+        ),
+    ] = False,
+    model: ModelOpt = None,
+    system: SystemOpt = None,
+    connect: ConnectOpt = None,
+    run_dir: RunDirOpt = None,
+    as_json: JsonOpt = False,
+    timeout: TimeoutOpt = 30.0,
+) -> None:
+    """Restart a component in its process: its liveliness goes down and up, it is
+    re-created from its implementation when that is a function, and it keeps the state
+    it has (with --from-snapshot: its latest snapshot in knowledge). Input waits
+    meanwhile.
+
+    Example: `rap restart analysis`, `rap restart analysis --from-snapshot`
+    """
+    reach = resolve(model, system, connect, run_dir)
+    request = RestartRequest(from_snapshot=from_snapshot)
+    _report(_one(reach, component, "restart", request, timeout), as_json)
+
+
 def restore(
     component: ComponentArg,
     version: Annotated[
@@ -413,16 +442,7 @@ def register(app: typer.Typer) -> None:
             "Example: `rap resume planner`",
         )
     )
-    app.command("restart")(
-        _simple(
-            "restart",
-            "Restart a component in its process: its liveliness goes down and up, it is "
-            "re-created from its implementation when that is a function, and its state is "
-            "restored from its latest snapshot in knowledge (none kept: the state it had). "
-            "Input waits meanwhile.\n\nExample: `rap restart analysis`",
-            30.0,
-        )
-    )
+    app.command("restart")(restart)
     app.command("swap")(swap)
     app.command("snapshot")(
         _simple(

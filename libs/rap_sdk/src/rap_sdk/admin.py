@@ -11,6 +11,7 @@ component run one at a time; each is logged (the audit trail) with what it did.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import logging
 import re
@@ -30,6 +31,7 @@ from rap_schemas.admin import (
     ComponentStatus,
     ComponentSwap,
     ConfigRequest,
+    RestartRequest,
     RestoreRequest,
     SnapshotInfo,
     snapshot_key,
@@ -196,8 +198,12 @@ async def resume_from_knowledge(rt: NodeRuntime, kb: KnowledgeClient) -> None:
     log.info(
         "node %s: resumed the state of its snapshot of %s",
         rt.node.name,
-        time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(snap.ts / 1e9)),
+        _when(snap.ts),
     )
+
+
+def _when(ts: int) -> str:
+    return time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(ts / 1e9))
 
 
 def _refused(verb: str, rt: NodeRuntime, message: str, path: str = "") -> AdminReply:
@@ -281,16 +287,13 @@ async def _verb(rt: NodeRuntime, verb: str, payload: bytes) -> AdminReply:
         impl = rt.node.implementation
         if impl:
             fresh = await anyio.to_thread.run_sync(load_implementation, impl)
+        restart: RestartRequest = _request(payload, RestartRequest)
         state = None
         how = "with the state it had"
-        if rt.node._restore is not None:
-            try:
-                state = (await _stored(rt.knowledge, name)).state
-                how = "from its latest snapshot in knowledge"
-            except ConfigError:
-                how += " (no snapshot kept)"
-            except KnowledgeError as exc:
-                how += f" (its snapshot could not be read: {exc})"
+        if restart.from_snapshot:
+            snap = await _stored(rt.knowledge, name)  # none kept: refused, nothing done
+            state = snap.state
+            how = f"from its snapshot taken at {_when(snap.ts)} UTC"
         await rt.restart(fresh, state)
         return ok(ok=True, verb=verb, component=name, status=status(rt), message=f"restarted {how}")
     if verb == "snapshot":
@@ -312,8 +315,7 @@ async def _verb(rt: NodeRuntime, verb: str, payload: bytes) -> AdminReply:
             verb=verb,
             component=name,
             status=status(rt),
-            message=f"restored the snapshot of {snap.implementation} taken at "
-            f"{time.strftime('%Y-%m-%d %H:%M:%S', time.gmtime(snap.ts / 1e9))} UTC",
+            message=f"restored the snapshot of {snap.implementation} taken at {_when(snap.ts)} UTC",
         )
     return _refused(verb, rt, f"unknown verb {verb!r}; the verbs: {', '.join(ADMIN_VERBS)}")
 
@@ -337,7 +339,9 @@ def serve_admin(rt: NodeRuntime) -> Queryable:
             )
             return [Reply(key, _encode(reply))]
         key = keys.admin(rt.system, name, verb)
-        async with rt.admin_lock:
+        # what only reads does not wait behind a pause or swap waiting for a handler
+        reading = verb == "status" or (verb == "config" and not req.payload.strip(b" {}"))
+        async with contextlib.nullcontext() if reading else rt.admin_lock:
             try:
                 reply = await _verb(rt, verb, req.payload)
             except (ConfigError, KnowledgeError, LifecycleError) as exc:
@@ -346,9 +350,7 @@ def serve_admin(rt: NodeRuntime) -> Queryable:
                 log.exception("node %s: admin %s failed", name, verb)
                 reply = _refused(verb, rt, f"{type(exc).__name__}: {exc}")
         # the audit trail: what changed a component at INFO, what only read it at DEBUG
-        reads = verb == "status" or (
-            verb == "config" and reply.config is not None and not reply.message
-        )
+        reads = reading
         (log.warning if not reply.ok else log.debug if reads else log.info)(
             "node %s: admin %s %s%s",  # the node first: structured logs name it
             name,

@@ -419,9 +419,9 @@ class NodeRuntime:
         """The route each consumer serves, by subscription (a swap replaces them)."""
         self._paused = False
         self._token: Any = None
-        self._swapped: dict[Route, Route] = {}
-        """Routes replaced by a swap -> their replacements (a consumer that took a
-        sample before the swap hands it to the new implementation)."""
+        self._swapped: dict[int, tuple[Route, Route]] = {}
+        """id of a route replaced by a swap -> (that route, its replacement): a consumer
+        that took a sample before the swap hands it to the new implementation."""
         self.admin_lock = anyio.Lock()
         """Held by each admin verb: one at a time on a node."""
 
@@ -684,8 +684,10 @@ class NodeRuntime:
             await kb.await_versions(env.ctx, deadline)
         ctx = Context(self, sample.key, env, env.body, deadline)
         async with self._lock:
-            if self._swapped:
-                route = self._swapped.get(route, route)
+            if self._swapped:  # by identity: a Route's own hash walks its fields
+                swapped = self._swapped.get(id(route))
+                if swapped is not None:
+                    route = swapped[1]
             await self._call(route, ctx)
 
     async def _call(self, route: Route, ctx: Context, direct: bool = False) -> None:
@@ -986,7 +988,7 @@ class NodeRuntime:
         if old.config is not None and new.config is not None:
             carried = {
                 k: v
-                for k, v in msgspec.structs.asdict(old.config).items()
+                for k, v in msgspec.to_builtins(old.config).items()
                 if k in type(new.config).__struct_fields__
             }
             new.configure(carried)
@@ -1001,13 +1003,13 @@ class NodeRuntime:
             new.name = old.name
         for i, (sub, route) in enumerate(zip(self._subs, routes, strict=True)):
             prev = self._routes[i]
-            for k, v in list(self._swapped.items()):
-                if v is prev:
-                    self._swapped[k] = route
-            self._swapped[prev] = route
+            for k, (old_route, replacement) in list(self._swapped.items()):
+                if replacement is prev:
+                    self._swapped[k] = (old_route, route)
+            self._swapped[id(prev)] = (prev, route)
             self._routes[i] = route
-            if hasattr(sub, "direct") and route.accepts is not None:
-                sub.direct = partial(self.direct, route, sub)
+            if hasattr(sub, "direct"):  # never left pointing at the old route
+                sub.direct = partial(self.direct, route, sub) if route.accepts else None
         self.node = new
 
     async def swap(self, new: Node) -> None:
