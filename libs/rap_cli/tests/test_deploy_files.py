@@ -519,3 +519,25 @@ def test_rap_generate_deploy_only_deploys_the_lidar_example(
     docker = files["deploy/Dockerfile"]
     assert "COPY model.yaml model.yaml" in docker
     assert "COPY lidar_occlusion/" not in docker
+
+
+def test_with_tls_each_router_presents_its_nodes_certificate(
+    tmp_path: Path, compose_schema: dict[str, Any]
+) -> None:
+    data = yaml.safe_load(LIDAR.read_text())
+    data.setdefault("fabric", {})["tls"] = True
+    doc = parse_plan(yaml.safe_dump(data, sort_keys=False), str(LIDAR))
+    files = deploy_files(doc, package="lidar_occlusion")
+    root = _write(files, tmp_path)
+    _check_compose(compose_schema, files, root)
+    for node in doc.plan.compute_nodes:
+        router = _compose(files, node)["services"]["router"]
+        assert router["volumes"] == ["../../certs:/certs:ro"]
+        text = files[f"deploy/{node}/zenoh-router.json5"]
+        conf = json.loads("\n".join(x for x in text.splitlines() if not x.startswith("//")))
+        tls = conf["transport"]["link"]["tls"]
+        assert tls["root_ca_certificate"] == "/certs/ca.pem"
+        assert tls["listen_certificate"] == f"/certs/{node}.pem"
+        assert tls["enable_mtls"] is True
+        linked = conf["listen"]["endpoints"] + conf["connect"]["endpoints"]
+        assert any(e.startswith("tls/") for e in linked), linked

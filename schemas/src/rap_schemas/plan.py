@@ -280,6 +280,10 @@ class FabricSpec(_Plan, frozen=True, kw_only=True):
     """The Zenoh session mode of every process."""
     routers: list[Endpoint] = []
     """Zenoh routers every session connects to."""
+    tls: bool = False
+    """Zenoh links use TLS with mutual authentication; `rap certs` makes the certificates."""
+    operators: list[Name] = []
+    """Operator identities that get a certificate (`rap certs`), to reach the fabric with."""
 
 
 class TrustSpec(_Plan, frozen=True, kw_only=True):

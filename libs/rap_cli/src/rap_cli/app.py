@@ -268,7 +268,7 @@ def export_aadl_cmd(
 
 def _register_commands() -> None:
     """Commands that live in modules of their own (each has ``register(app)``)."""
-    from . import admin_cli, generate_cli, logs_cli, topic_cli, trace_cli, up, view_cli
+    from . import admin_cli, certs_cli, generate_cli, logs_cli, topic_cli, trace_cli, up, view_cli
 
     generate_cli.register(app)
     up.register(app)
@@ -277,6 +277,7 @@ def _register_commands() -> None:
     topic_cli.register(app)
     logs_cli.register(app)
     trace_cli.register(app)
+    certs_cli.register(app)
 
 
 _register_commands()

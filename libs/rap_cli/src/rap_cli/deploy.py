@@ -16,6 +16,12 @@ An endpoint whose host is the name of a compute node (``tcp/edge:7447``) is reso
 that node's address: the one given with ``--address edge=HOST``, else the model's
 ``address:``, else the name itself (left to DNS, as on a compose network).
 
+With ``fabric: {tls: true}`` the model's endpoints (``listen``, ``connect``,
+``fabric.routers``) go over TLS (``tcp/`` becomes ``tls/``) with mutual authentication:
+each router presents its compute node's certificate (``rap certs``) and accepts only
+peers whose certificate the model's CA signed. A node's own clients reach its router on
+a loopback ``tcp/`` endpoint (that link never leaves the machine).
+
 Knowledge runs on ``knowledge.node`` (the first compute node when none is named), the
 trust checker on ``trust.node`` (one process per spec), the runner on every node that has
 components with a ``module:``, and each component with ``run:`` as its own process.
@@ -38,6 +44,7 @@ __all__ = [
     "Paths",
     "ProcessSpec",
     "Role",
+    "TlsFiles",
     "client_config",
     "knowledge_node",
     "node_processes",
@@ -45,6 +52,8 @@ __all__ = [
     "resolve_url",
     "router_config",
     "router_id",
+    "tls_endpoint",
+    "tls_link",
 ]
 
 PYTHON = "{python}"
@@ -149,11 +158,62 @@ def resolve_url(url: str, plan: DeploymentPlan, addresses: Mapping[str, str] | N
     return url
 
 
-def _zenoh_base(mode: str) -> dict[str, Any]:
+@dataclass(frozen=True, slots=True)
+class TlsFiles:
+    """The files of one identity's TLS links (``rap certs`` writes them)."""
+
+    ca: str
+    """The CA certificate every peer's certificate must be signed by (``ca.pem``)."""
+    certificate: str
+    """This identity's certificate (``<name>.pem``)."""
+    private_key: str
+    """Its private key (``<name>.key``)."""
+
+    @classmethod
+    def of(cls, folder: str | Path, name: str) -> TlsFiles:
+        """Identity ``name``'s files in ``folder`` (as ``rap certs`` names them)."""
+        base = PurePosixPath(folder) if isinstance(folder, str) else folder
+        return cls(
+            ca=str(base / "ca.pem"),
+            certificate=str(base / f"{name}.pem"),
+            private_key=str(base / f"{name}.key"),
+        )
+
+    def missing(self) -> list[str]:
+        """The files that are not there (on this machine)."""
+        return [f for f in (self.ca, self.certificate, self.private_key) if not Path(f).is_file()]
+
+
+def tls_endpoint(endpoint: str) -> str:
+    """``endpoint`` over TLS: ``tcp/HOST:PORT`` becomes ``tls/HOST:PORT``; others stay."""
+    return "tls/" + endpoint[4:] if endpoint.startswith("tcp/") else endpoint
+
+
+def tls_link(files: TlsFiles) -> dict[str, Any]:
+    """Zenoh's ``transport.link.tls`` for mutual TLS with ``files``: the same certificate
+    presented when listening and when connecting, peers' certificates checked against
+    the CA both ways, the server's name checked against its certificate's
+    subjectAltNames, and a link closed when a certificate expires."""
+    return {
+        "root_ca_certificate": files.ca,
+        "listen_certificate": files.certificate,
+        "listen_private_key": files.private_key,
+        "connect_certificate": files.certificate,
+        "connect_private_key": files.private_key,
+        "enable_mtls": True,
+        "verify_name_on_connect": True,
+        "close_link_on_expiration": True,
+    }
+
+
+def _zenoh_base(mode: str, tls: TlsFiles | None = None) -> dict[str, Any]:
+    link: dict[str, Any] = {"tx": {"lease": 3000, "keep_alive": 4}}
+    if tls is not None:
+        link["tls"] = tls_link(tls)
     return {
         "mode": mode,
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
-        "transport": {"link": {"tx": {"lease": 3000, "keep_alive": 4}}},
+        "transport": {"link": link},
     }
 
 
@@ -170,6 +230,7 @@ def router_config(
     local: Sequence[str],
     addresses: Mapping[str, str] | None = None,
     listen: Sequence[str] | None = None,
+    tls: TlsFiles | None = None,
 ) -> dict[str, Any]:
     """The Zenoh config of ``node``'s router, with a fixed id (:func:`router_id`): it
     listens on ``local`` (where the node's clients connect) and the node's ``listen``
@@ -177,17 +238,31 @@ def router_config(
     ``fabric.routers`` (its own listen endpoints excepted). Endpoints naming a compute
     node are resolved (:func:`resolve_endpoint`). ``listen``: the node's listen
     endpoints as the router binds them, when that differs from the model's resolved
-    ones (inside a container: every interface)."""
+    ones (inside a container: every interface).
+
+    ``tls``: the node's certificate files, required when the model says ``fabric.tls``
+    (``ValueError`` without them): the model's ``tcp/`` endpoints (and ``listen``) become
+    ``tls/`` ones, with mutual TLS; ``local`` stays as given."""
+    if plan.fabric.tls and tls is None:
+        raise ValueError(
+            f"compute node {node}: the model says fabric.tls - its router needs its "
+            "certificate files (rap certs MODEL)"
+        )
+
+    def secure(e: str) -> str:
+        return tls_endpoint(e) if plan.fabric.tls else e
+
     spec = plan.compute_nodes[node]
-    mine = [resolve_endpoint(e, plan, addresses) for e in spec.listen]
-    binds = list(dict.fromkeys([*local, *(mine if listen is None else listen)]))
+    mine = [secure(resolve_endpoint(e, plan, addresses)) for e in spec.listen]
+    given = mine if listen is None else [secure(e) for e in listen]
+    binds = list(dict.fromkeys([*local, *given]))
     own = set(binds) | set(mine)
     connect: list[str] = []
     for e in [*spec.connect, *plan.fabric.routers]:
-        r = resolve_endpoint(e, plan, addresses)
+        r = secure(resolve_endpoint(e, plan, addresses))
         if r not in own and r not in connect and e not in spec.listen:
             connect.append(r)
-    conf = _zenoh_base("router")
+    conf = _zenoh_base("router", tls if plan.fabric.tls else None)
     conf["id"] = router_id(plan.system, node)
     conf["listen"] = {"endpoints": binds}
     # a router keeps trying the routers it connects to: a link cut and restored heals
@@ -200,9 +275,10 @@ def router_config(
     return conf
 
 
-def client_config(router: str) -> dict[str, Any]:
-    """The Zenoh config of the node's other processes: clients of its router."""
-    conf = _zenoh_base("client")
+def client_config(router: str, tls: TlsFiles | None = None) -> dict[str, Any]:
+    """The Zenoh config of the node's other processes: clients of its router (with
+    ``tls``: presenting that certificate, for a ``tls/`` router endpoint)."""
+    conf = _zenoh_base("client", tls)
     conf["listen"] = {"endpoints": []}
     conf["connect"] = {"endpoints": [router]}
     return conf
@@ -216,8 +292,8 @@ def render_zenoh(conf: Mapping[str, Any], *, title: str) -> str:
     lines = [
         f"// {title}",
         "// Generated by rap from the system model; regenerate rather than edit.",
-        "// TLS and mutual authentication: transport.link.tls (set by the model's security",
-        "// options); access control: access_control. Neither is set here yet.",
+        "// TLS and mutual authentication: transport.link.tls (when the model says",
+        "// fabric: {tls: true}; rap certs makes the files); access control: not set yet.",
         json.dumps(conf, indent=2),
     ]
     return "\n".join(lines) + "\n"

@@ -11,6 +11,12 @@ Each verb takes the same options:
 
 Without ``--connect``, ``RAP_ZENOH_CONFIG`` (a Zenoh client config, as inside a
 container) says where the fabric is; else the ``rap up`` of the model does.
+
+A router reached over TLS (``--connect tls/HOST:PORT``, a model with ``fabric: {tls:
+true}``) wants a certificate of the model's CA: ``--as NAME`` (an identity ``rap certs``
+made: one of ``fabric.operators``) and ``--certs DIR`` (default: ``<model
+folder>/certs``), or ``RAP_AS`` and ``RAP_CERTS``. The router of a ``rap up`` on this
+machine is reached on its loopback ``tcp/`` endpoint, without one.
 """
 
 from __future__ import annotations
@@ -30,8 +36,14 @@ if TYPE_CHECKING:
     from rap_schemas import DeploymentPlan
     from rap_sdk import ZenohFabric
 
+    from .deploy import TlsFiles
+
 __all__ = [
+    "AS_ENV",
+    "CERTS_ENV",
     "SYSTEM_ENV",
+    "AsOpt",
+    "CertsOpt",
     "ConnectOpt",
     "ModelOpt",
     "Reach",
@@ -43,6 +55,10 @@ __all__ = [
 ]
 
 SYSTEM_ENV = "RAP_SYSTEM"
+CERTS_ENV = "RAP_CERTS"
+"""The folder of ``rap certs`` when ``--certs`` is not given."""
+AS_ENV = "RAP_AS"
+"""The identity to present on TLS links when ``--as`` is not given."""
 
 ModelOpt = Annotated[
     Path | None,
@@ -83,6 +99,26 @@ RunDirOpt = Annotated[
 ]
 
 
+CertsOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--certs",
+        help=f"The certificates `rap certs` wrote, for a tls/ endpoint (default: "
+        f"`<model folder>/certs`, else ${CERTS_ENV}).",
+        show_default=False,
+    ),
+]
+AsOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--as",
+        help=f"The identity whose certificate (in --certs) is presented to a tls/ endpoint: "
+        f"one of the model's fabric.operators (default: ${AS_ENV}).",
+        show_default=False,
+    ),
+]
+
+
 @dataclass(frozen=True)
 class Reach:
     """A system, and where its fabric is."""
@@ -94,6 +130,8 @@ class Reach:
     """Said in errors: how the fabric was found."""
     plan: DeploymentPlan | None = field(default=None, repr=False)
     """The model's plan, when one was given or found."""
+    tls: TlsFiles | None = None
+    """The certificate presented to ``tls/`` endpoints (None: no TLS)."""
 
 
 def find_model(model: Path | None) -> Path | None:
@@ -110,8 +148,12 @@ def resolve(
     system: str | None,
     connect: list[str] | None,
     run_dir: Path | None = None,
+    *,
+    certs: Path | None = None,
+    identity: str | None = None,
 ) -> Reach:
-    """The system and endpoints the options name; a usage error says what to give."""
+    """The system and endpoints the options name; a usage error says what to give.
+    ``certs``, ``identity``: ``--certs`` and ``--as``, for ``tls/`` endpoints."""
     from rap_sdk.entry import EntryError, check_endpoints
 
     from .up import STATE_FILE, _load, _running, read_state
@@ -140,7 +182,8 @@ def resolve(
         usage(exc.message)
     if endpoints:
         os.environ.pop("RAP_ZENOH_CONFIG", None)  # --connect says where: no overlay
-        return Reach(name, endpoints, ", ".join(endpoints), plan)
+        tls = _tls(endpoints, file, certs, identity)
+        return Reach(name, endpoints, ", ".join(endpoints), plan, tls)
     if os.environ.get("RAP_ZENOH_CONFIG"):
         return Reach(name, [], f"RAP_ZENOH_CONFIG={os.environ['RAP_ZENOH_CONFIG']}", plan)
     if file is None or plan is None:
@@ -161,20 +204,60 @@ def resolve(
     return Reach(name, endpoints, f"the routers of rap up: {', '.join(endpoints)}", plan)
 
 
+def _tls(
+    endpoints: list[str], model: Path | None, certs: Path | None, identity: str | None
+) -> TlsFiles | None:
+    """The certificate to present to the ``tls/`` ones of ``endpoints`` (None: none is)."""
+    from .deploy import TlsFiles
+
+    secure = [e for e in endpoints if e.startswith("tls/")]
+    if not secure:
+        return None
+    name = identity or os.environ.get(AS_ENV)
+    if not name:
+        usage(
+            f"{secure[0]} is a TLS endpoint: present a certificate with --as NAME (an "
+            f"operator of the model's fabric.operators, made by rap certs MODEL) or set {AS_ENV}"
+        )
+    given = certs or (Path(os.environ[CERTS_ENV]) if os.environ.get(CERTS_ENV) else None)
+    folder = given or (model.parent / "certs" if model is not None else None)
+    if folder is None:
+        usage(f"--as {name}: where are the certificates? give --certs DIR or set {CERTS_ENV}")
+    files = TlsFiles.of(folder.resolve(), name)
+    missing = files.missing()
+    if missing:
+        usage(
+            f"{folder}: no certificate for {name!r} (missing: "
+            f"{', '.join(Path(m).name for m in missing)}) - add {name} to the model's "
+            "fabric.operators and run rap certs MODEL, or give --certs DIR"
+        )
+    return files
+
+
 @asynccontextmanager
 async def open_fabric(reach: Reach) -> AsyncIterator[ZenohFabric]:
     """A client session on the fabric ``reach`` names; a clear error when it cannot be
     reached."""
     from rap_sdk import FabricError, ZenohConfig, ZenohFabric
 
-    conf = ZenohConfig(mode="client", listen=[], connect=reach.endpoints)
+    extra: dict[str, object] = {}
+    if reach.tls is not None:
+        from .deploy import client_config
+
+        extra["transport"] = client_config("", reach.tls)["transport"]
+    conf = ZenohConfig(mode="client", listen=[], connect=reach.endpoints, extra=extra)
     try:
         fabric = ZenohFabric(conf)
         await fabric.__aenter__()
     except FabricError as exc:
+        trust = (
+            f", and does it trust {reach.tls.certificate} (the same CA, rap certs)?"
+            if reach.tls is not None
+            else "?"
+        )
         failed(
             f"cannot reach the fabric through {reach.where}: {exc} - is its router running "
-            "(rap up)?"
+            f"(rap up){trust}"
         )
     try:
         yield fabric

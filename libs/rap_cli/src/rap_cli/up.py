@@ -46,6 +46,7 @@ from .deploy import (
     CONFIG_ENV,
     Paths,
     ProcessSpec,
+    TlsFiles,
     client_config,
     knowledge_node,
     node_processes,
@@ -53,6 +54,7 @@ from .deploy import (
     router_config,
     router_id,
 )
+from .reach import AsOpt, CertsOpt
 
 __all__ = [
     "STATE_FILE",
@@ -216,6 +218,7 @@ def plan_run(
     addresses: Mapping[str, str] | None = None,
     log_level: str = "INFO",
     link: bool = False,
+    certs: Path | None = None,
 ) -> list[NodeRun]:
     """The configs and processes of ``nodes`` (nothing written, nothing started).
 
@@ -223,7 +226,9 @@ def plan_run(
     ``listen`` endpoints (a compute node's name as host resolved as
     :func:`~rap_cli.deploy.resolve_endpoint` says). ``link``: the routers of ``nodes``
     also form one connected graph: the model's ``connect`` endpoints link some; every
-    group still apart gets linked to the first node's local endpoint."""
+    group still apart gets linked to the first node's local endpoint. ``certs``: the
+    folder ``rap certs`` wrote, used when the model says ``fabric.tls`` (each router
+    presents its node's certificate on its ``tls/`` links)."""
     plan = doc.plan
     addresses = dict(addresses or {})
     runs: list[NodeRun] = []
@@ -231,7 +236,8 @@ def plan_run(
     for node, port in zip(nodes, _free_ports(len(nodes)), strict=True):
         paths = Paths.local(model, run_dir, node)
         local = f"tcp/127.0.0.1:{port}"
-        conf = router_config(plan, node, local=[local], addresses=addresses)
+        tls = TlsFiles.of(certs, node) if plan.fabric.tls and certs is not None else None
+        conf = router_config(plan, node, local=[local], addresses=addresses, tls=tls)
         # one adaptation manager per system, beside knowledge; its dashboard on loopback
         http = metrics("manager") if knowledge_node(plan) == node else None
         procs = node_processes(
@@ -897,6 +903,15 @@ def up(
         float,
         typer.Option("--grace", help="Seconds a process has to stop after SIGTERM before SIGKILL."),
     ] = 10.0,
+    certs: Annotated[
+        Path | None,
+        typer.Option(
+            "--certs",
+            help="The certificates `rap certs` wrote, used when the model says fabric: "
+            "{tls: true} (default: `<model folder>/certs`).",
+            show_default=False,
+        ),
+    ] = None,
 ) -> None:
     """Run compute nodes of a model on this machine: for each, its Zenoh router, then
     knowledge, the runner, the trust checkers and the `run:` commands mapped there, as
@@ -906,7 +921,12 @@ def up(
     Beside knowledge runs the system's adaptation manager: its dashboard's address
     (loopback, a free port) is printed (`dashboard: http://127.0.0.1:PORT/`) and kept in
     that node's `up.json`.
-    Exit 0 when stopped so, 1 when a router cannot start, 2 for a bad model or usage."""
+    With `fabric: {tls: true}` in the model, the routers link over mutual TLS, each with
+    its node's certificate from --certs (`rap certs MODEL` makes them); a node's own
+    processes reach its router on loopback tcp.
+    Exit 0 when stopped so, 1 when a router cannot start, 2 for a bad model or usage.
+
+    Example: `rap up examples/lidar_occlusion/model.yaml --all`"""
     file, doc = _load(model)
     plan = doc.plan
     if all_nodes and node:
@@ -924,6 +944,20 @@ def up(
     if grace < 0:
         usage(f"--grace {grace:g}: give a number of seconds >= 0")
     base = (run_dir or _default_run_dir(file, plan)).resolve()
+    cert_dir = (certs or file.parent / "certs").resolve()
+    if plan.fabric.tls:
+        for n in nodes:
+            missing = TlsFiles.of(cert_dir, n).missing()
+            if missing:
+                usage(
+                    f"{doc.where(('fabric', 'tls'))}: the model says fabric.tls, but compute "
+                    f"node {n} has no certificate in {cert_dir} (missing: "
+                    f"{', '.join(Path(m).name for m in missing)}) - run rap certs {model}"
+                    + (f" -o {certs}" if certs is not None else "")
+                    + " (or give --certs DIR)"
+                )
+    elif certs is not None:
+        typer.echo(f"note: {file} does not say fabric: {{tls: true}} - --certs is not used")
     for n in nodes:
         state = read_state(base / n / STATE_FILE)
         if _running(state):
@@ -941,7 +975,16 @@ def up(
                 + (f" --run-dir {run_dir}" if run_dir is not None else "")
             )
     try:
-        runs = plan_run(doc, file, nodes, base, addresses=addresses, log_level=level, link=True)
+        runs = plan_run(
+            doc,
+            file,
+            nodes,
+            base,
+            addresses=addresses,
+            log_level=level,
+            link=True,
+            certs=cert_dir,
+        )
     except KeyError as exc:
         usage(str(exc.args[0]) if exc.args else str(exc))
     try:
@@ -1062,12 +1105,19 @@ def health(
         ),
     ] = None,
     run_dir: RunDirOpt = None,
+    certs: CertsOpt = None,
+    identity: AsOpt = None,
 ) -> None:
     """Exit 0 when every Node of a compute node's share (its components with a
     `module:`, and knowledge when it hosts it) is alive on the fabric, else 1, naming
     the missing ones. The fabric is reached through --connect, else RAP_ZENOH_CONFIG
     (inside a container: the node's client config), else the router of the `rap up`
-    that runs the node."""
+    that runs the node. A tls/ endpoint (fabric: {tls: true}) wants a certificate:
+    --as NAME and --certs DIR (`rap certs`).
+
+    Example: `rap health model.yaml --node edge --connect tls/10.0.0.2:7447 --as ops`"""
+    from .reach import _tls
+
     file, doc = _load(model)
     name = _one_node(doc, node)
     if timeout <= 0:
@@ -1079,9 +1129,11 @@ def health(
         check_endpoints("--connect", endpoints)
     except EntryError as exc:
         usage(exc.message)
+    tls = None
     if endpoints:
         os.environ.pop(CONFIG_ENV, None)  # --connect says where: no overlay
         where = ", ".join(endpoints)
+        tls = _tls(endpoints, file, certs, identity)
     elif os.environ.get(CONFIG_ENV):
         where = f"{CONFIG_ENV}={os.environ[CONFIG_ENV]}"
     else:
@@ -1096,16 +1148,23 @@ def health(
         endpoints = [state["router"]]
         where = f"the router of rap up at {endpoints[0]}"
     expected = expected_nodes(doc.plan, name)
-    code = anyio.run(_health, doc.plan.system, name, expected, endpoints, where, timeout)
+    code = anyio.run(_health, doc.plan.system, name, expected, endpoints, where, timeout, tls)
     raise typer.Exit(code)
 
 
 async def _health(
-    system: str, node: str, expected: list[str], endpoints: list[str], where: str, timeout: float
+    system: str,
+    node: str,
+    expected: list[str],
+    endpoints: list[str],
+    where: str,
+    timeout: float,
+    tls: TlsFiles | None = None,
 ) -> int:
     from rap_sdk import FabricError, ZenohConfig, ZenohFabric
 
-    conf = ZenohConfig(mode="client", listen=[], connect=endpoints)
+    extra = {"transport": client_config("", tls)["transport"]} if tls is not None else {}
+    conf = ZenohConfig(mode="client", listen=[], connect=endpoints, extra=extra)
     seen: set[str] = set()
     try:
         async with ZenohFabric(conf) as fabric:

@@ -44,6 +44,7 @@ from rap_schemas import ComponentSpec, DeploymentPlan, PlanDocument
 from ..deploy import (
     Paths,
     ProcessSpec,
+    TlsFiles,
     client_config,
     knowledge_node,
     node_processes,
@@ -86,6 +87,8 @@ DATA_DIR = "/data"
 ROUTER_PORT = 7446
 """The port the node's router listens on, inside compose, for the node's processes."""
 ROUTER_SERVICE = "router"
+CERTS_MOUNT = "/certs"
+"""Where a router's container finds the certificates of ``rap certs`` (fabric.tls)."""
 REDIS_IMAGE = "redis:7"
 REDIS_PORT = 6379
 RAP_DISTRIBUTIONS = (
@@ -303,8 +306,10 @@ def _listens(plan: DeploymentPlan, node: str) -> list[_Listen]:
 def zenoh_files(plan: DeploymentPlan, node: str) -> tuple[str, str]:
     """The text of ``node``'s router and client Zenoh configs, inside compose."""
     local = f"tcp/0.0.0.0:{ROUTER_PORT}"
+    # with fabric.tls the router presents the node's certificate (rap certs), mounted
+    tls = TlsFiles.of(CERTS_MOUNT, node) if plan.fabric.tls else None
     conf = router_config(
-        plan, node, local=[local], listen=[item.endpoint for item in _listens(plan, node)]
+        plan, node, local=[local], listen=[item.endpoint for item in _listens(plan, node)], tls=tls
     )
     router = render_zenoh(conf, title=f"The Zenoh router of compute node {node} (in compose)")
     client = render_zenoh(
@@ -493,6 +498,8 @@ def compose_data(
             ports = [item.publish for item in _listens(plan, node) if item.publish]
             if ports:
                 service["ports"] = list(dict.fromkeys(ports))
+            if plan.fabric.tls:  # rap certs MODEL writes <model folder>/certs
+                service["volumes"] = [f"../../certs:{CERTS_MOUNT}:ro"]
         services[names[p.name]] = service
     if redis is not None and redis.node == node:
         services[redis_name] = _redis_service(plan, node, redis)

@@ -1,0 +1,115 @@
+"""The lidar-occlusion case with ``fabric: {tls: true}``: after ``rap certs``, ``rap up
+--all`` links the edge's and the robot's routers over mutual TLS (``tls/`` endpoints,
+each router presenting its compute node's certificate) and the loop still closes: an
+approved verdict, and the plan at the robot. An operator reaches a router over TLS only with a
+certificate of the model's CA (``rap health --as``). Without the certificates ``rap up``
+refuses and says to run ``rap certs``.
+
+The test watches as a Zenoh client of the robot's router (its loopback ``tcp/`` endpoint,
+as the robot's own processes reach it).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import anyio
+import pytest
+from rap_cli.testing import model_copy, rap_command, rap_up
+from rap_schemas import Verdict, keys
+from rap_sdk.fabric import CONFIG_ENV
+from rap_sdk.testing import Harness, Record
+
+pytestmark = [pytest.mark.anyio, pytest.mark.zenoh, pytest.mark.slow, pytest.mark.timeout(120)]
+
+REPO = Path(__file__).resolve().parents[1]
+MODEL = REPO / "examples/lidar_occlusion/model.yaml"
+SYSTEM = "demo"
+PLAN_TOPIC = "tb1/spin_config"
+
+
+def _approved(r: Record) -> bool:
+    """An approving verdict."""
+    return r.kind is keys.Kind.EVENT and r.name == "verdict" and r.decode(Verdict[Any]).approved
+
+
+def _config(path: Path) -> dict[str, Any]:
+    """A Zenoh config rap up wrote (JSON with whole-line ``//`` comments)."""
+    text = path.read_text()
+    conf = json.loads("\n".join(x for x in text.splitlines() if not x.lstrip().startswith("//")))
+    assert isinstance(conf, dict)
+    return conf
+
+
+def _tls_copy(folder: Path) -> Path:
+    copy = model_copy(MODEL, folder)
+    copy.write_text(copy.read_text() + "\nfabric:\n  tls: true\n  operators: [ops]\n")
+    return copy
+
+
+def test_rap_up_refuses_a_tls_model_without_certificates(tmp_path: Path) -> None:
+    model = _tls_copy(tmp_path)
+    out = subprocess.run(
+        [rap_command(), "up", str(model), "--all", "--run-dir", str(tmp_path / "run")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert out.returncode == 2, out.stdout + out.stderr
+    assert "rap certs" in out.stderr
+    assert "robot" in out.stderr or "edge" in out.stderr
+    assert not (tmp_path / "run").exists()  # nothing started, nothing written
+
+
+async def test_rap_up_all_over_mutual_tls_closes_the_loop(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    model = _tls_copy(tmp_path)
+    certs = await anyio.run_process([rap_command(), "certs", str(model)], check=False)
+    assert certs.returncode == 0, certs.stderr.decode()
+    for name in ("ca", "robot", "edge", "ops"):
+        assert (tmp_path / "certs" / f"{name}.pem").is_file()
+    run = tmp_path / "run"
+    async with rap_up(model, run) as out:
+        # the routers link over TLS: the edge listens on tls/, the robot connects there
+        edge = _config(run / "edge" / "zenoh-router.json5")
+        robot = _config(run / "robot" / "zenoh-router.json5")
+        tls_listen = [e for e in edge["listen"]["endpoints"] if e.startswith("tls/127.0.0.1:")]
+        assert len(tls_listen) == 1, edge["listen"]
+        assert robot["connect"]["endpoints"] == tls_listen
+        for conf, node in ((edge, "edge"), (robot, "robot")):
+            tls = conf["transport"]["link"]["tls"]
+            assert tls["enable_mtls"] is True
+            assert tls["listen_certificate"] == str((tmp_path / "certs" / f"{node}.pem").resolve())
+        assert any("listens on" in line and "tls/127.0.0.1:" in line for line in out.lines)
+        monkeypatch.setenv(CONFIG_ENV, str(run / "robot" / "zenoh-client.json5"))
+        async with Harness(system=SYSTEM, fabric="zenoh", timeout=30) as h:
+            anomaly = await h.expect_event("anomaly")
+            # the verdict is given on the edge: it crossed the TLS link to reach us
+            verdict = await h.wait_for(_approved, after=h.records.index(anomaly))
+            plan = await h.expect_data(PLAN_TOPIC, after=h.records.index(verdict))
+            assert plan.envelope is not None
+            assert plan.envelope.source == "executor"
+        # an operator reaches the edge's router over TLS with its certificate ...
+        rap, where = rap_command(), ["--node", "edge", "--connect", tls_listen[0]]
+        health = [rap, "health", str(model), *where, "--timeout", "10"]
+        ok = await anyio.run_process([*health, "--as", "ops"], check=False)
+        assert ok.returncode == 0, ok.stdout.decode() + ok.stderr.decode()
+        assert b"alive: " in ok.stdout
+        # ... is told to present one without it ...
+        none = await anyio.run_process(health, check=False)
+        assert none.returncode == 2
+        assert b"--as NAME" in none.stderr
+        # ... and is refused with a certificate of another CA
+        other = tmp_path / "other"
+        made = await anyio.run_process([rap, "certs", str(model), "-o", str(other)], check=False)
+        assert made.returncode == 0, made.stderr.decode()
+        forged = await anyio.run_process(
+            [*health, "--as", "ops", "--certs", str(other)], check=False
+        )
+        assert forged.returncode == 1, forged.stdout.decode() + forged.stderr.decode()
+        assert b"cannot reach the fabric" in forged.stderr
