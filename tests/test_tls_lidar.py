@@ -100,6 +100,26 @@ async def test_rap_up_all_over_mutual_tls_closes_the_loop(
         ok = await anyio.run_process([*health, "--as", "ops"], check=False)
         assert ok.returncode == 0, ok.stdout.decode() + ok.stderr.decode()
         assert b"alive: " in ok.stdout
+        # the operate commands too: rap status over the TLS link, as the operator
+        status = await anyio.run_process(
+            [
+                rap,
+                "status",
+                "--json",
+                "-s",
+                SYSTEM,
+                "-c",
+                tls_listen[0],
+                "--as",
+                "ops",
+                "--certs",
+                str(tmp_path / "certs"),
+            ],
+            check=False,
+        )
+        assert status.returncode == 0, status.stdout.decode() + status.stderr.decode()
+        rows = {r["name"]: r for r in json.loads(status.stdout)}
+        assert rows["analysis"]["compute_node"] == "edge"
         # ... is told to present one without it ...
         none = await anyio.run_process(health, check=False)
         assert none.returncode == 2

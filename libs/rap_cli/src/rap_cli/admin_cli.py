@@ -24,7 +24,17 @@ from rap_schemas.admin import (
 )
 
 from .cli import FAILED, OK, failed, usage
-from .reach import ConnectOpt, ModelOpt, Reach, RunDirOpt, SystemOpt, open_fabric, resolve
+from .reach import (
+    AsOpt,
+    CertsOpt,
+    ConnectOpt,
+    ModelOpt,
+    Reach,
+    RunDirOpt,
+    SystemOpt,
+    open_fabric,
+    resolve,
+)
 
 __all__ = ["register"]
 
@@ -207,6 +217,8 @@ def status(
     system: SystemOpt = None,
     connect: ConnectOpt = None,
     run_dir: RunDirOpt = None,
+    certs: CertsOpt = None,
+    identity: AsOpt = None,
     as_json: JsonOpt = False,
     watch: Annotated[bool, typer.Option("--watch", "-w", help="Refresh until Ctrl-C.")] = False,
     interval: Annotated[float, typer.Option("--interval", help="Seconds between refreshes.")] = 1.0,
@@ -220,7 +232,7 @@ def status(
     Example: `rap status --watch` (in the model's folder);
     `rap status -c tcp/192.0.2.5:7447 -s demo --json`
     """
-    reach = resolve(model, system, connect, run_dir)
+    reach = resolve(model, system, connect, run_dir, certs=certs, identity=identity)
     if watch:
         try:
             anyio.run(_watch, reach, timeout, as_json, interval)
@@ -271,6 +283,8 @@ def config_get(
     system: SystemOpt = None,
     connect: ConnectOpt = None,
     run_dir: RunDirOpt = None,
+    certs: CertsOpt = None,
+    identity: AsOpt = None,
     as_json: JsonOpt = False,
     timeout: TimeoutOpt = 5.0,
 ) -> None:
@@ -278,7 +292,7 @@ def config_get(
 
     Example: `rap config get analysis`
     """
-    reach = resolve(model, system, connect, run_dir)
+    reach = resolve(model, system, connect, run_dir, certs=certs, identity=identity)
     reply = _one(reach, component, "config", None, timeout)
     if not reply.ok:
         _report(reply, as_json)
@@ -306,6 +320,8 @@ def config_set(
     system: SystemOpt = None,
     connect: ConnectOpt = None,
     run_dir: RunDirOpt = None,
+    certs: CertsOpt = None,
+    identity: AsOpt = None,
     as_json: JsonOpt = False,
     timeout: TimeoutOpt = 5.0,
 ) -> None:
@@ -314,7 +330,7 @@ def config_set(
 
     Example: `rap config set analysis threshold=0.4 window=5`
     """
-    reach = resolve(model, system, connect, run_dir)
+    reach = resolve(model, system, connect, run_dir, certs=certs, identity=identity)
     reply = _one(reach, component, "config", ConfigRequest(values=_values(values)), timeout)
     _report(reply, as_json)
 
@@ -329,10 +345,12 @@ def _simple(verb: str, doc: str, timeout_default: float = 5.0) -> Any:
         system: SystemOpt = None,
         connect: ConnectOpt = None,
         run_dir: RunDirOpt = None,
+        certs: CertsOpt = None,
+        identity: AsOpt = None,
         as_json: JsonOpt = False,
         timeout: TimeoutOpt = timeout_default,
     ) -> None:
-        reach = resolve(model, system, connect, run_dir)
+        reach = resolve(model, system, connect, run_dir, certs=certs, identity=identity)
         _report(_one(reach, component, verb, None, timeout), as_json)
 
     command.__doc__ = doc
@@ -355,6 +373,8 @@ def swap(
     system: SystemOpt = None,
     connect: ConnectOpt = None,
     run_dir: RunDirOpt = None,
+    certs: CertsOpt = None,
+    identity: AsOpt = None,
     as_json: JsonOpt = False,
     timeout: TimeoutOpt = 30.0,
 ) -> None:
@@ -367,7 +387,7 @@ def swap(
     """
     if ":" not in target:
         usage(f"{target!r}: give MODULE:ATTR (e.g. my_robot.analysis_v2:analysis)")
-    reach = resolve(model, system, connect, run_dir)
+    reach = resolve(model, system, connect, run_dir, certs=certs, identity=identity)
     _report(_one(reach, component, "swap", ComponentSwap(target=target), timeout), as_json)
 
 
@@ -384,6 +404,8 @@ def restart(
     system: SystemOpt = None,
     connect: ConnectOpt = None,
     run_dir: RunDirOpt = None,
+    certs: CertsOpt = None,
+    identity: AsOpt = None,
     as_json: JsonOpt = False,
     timeout: TimeoutOpt = 30.0,
 ) -> None:
@@ -394,7 +416,7 @@ def restart(
 
     Example: `rap restart analysis`, `rap restart analysis --from-snapshot`
     """
-    reach = resolve(model, system, connect, run_dir)
+    reach = resolve(model, system, connect, run_dir, certs=certs, identity=identity)
     request = RestartRequest(from_snapshot=from_snapshot)
     _report(_one(reach, component, "restart", request, timeout), as_json)
 
@@ -408,6 +430,8 @@ def restore(
     system: SystemOpt = None,
     connect: ConnectOpt = None,
     run_dir: RunDirOpt = None,
+    certs: CertsOpt = None,
+    identity: AsOpt = None,
     as_json: JsonOpt = False,
     timeout: TimeoutOpt = 10.0,
 ) -> None:
@@ -418,7 +442,7 @@ def restore(
     """
     if version < 0:
         usage(f"--version {version}: give a version >= 0")
-    reach = resolve(model, system, connect, run_dir)
+    reach = resolve(model, system, connect, run_dir, certs=certs, identity=identity)
     reply = _one(reach, component, "restore", RestoreRequest(version=version), timeout)
     _report(reply, as_json)
 

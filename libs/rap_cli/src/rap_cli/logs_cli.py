@@ -31,7 +31,17 @@ from rap_schemas import Envelope, LogRecord, Rejection, keys
 from rap_schemas.limits import DecodeRejected, SafeDecoder
 
 from .cli import OK, failed, usage
-from .reach import SYSTEM_ENV, ConnectOpt, ModelOpt, Reach, RunDirOpt, SystemOpt, open_fabric
+from .reach import (
+    SYSTEM_ENV,
+    AsOpt,
+    CertsOpt,
+    ConnectOpt,
+    ModelOpt,
+    Reach,
+    RunDirOpt,
+    SystemOpt,
+    open_fabric,
+)
 from .reach import resolve as resolve_reach
 
 __all__ = [
@@ -327,6 +337,8 @@ def logs_cmd(
     system: SystemOpt = None,
     connect: ConnectOpt = None,
     run_dir: RunDirOpt = None,
+    certs: CertsOpt = None,
+    identity: AsOpt = None,
 ) -> None:
     """Show the structured logs of a system's processes (knowledge, runners, trust
     checkers): one line per record (time UTC, level, component or process@compute node,
@@ -356,7 +368,7 @@ def logs_cmd(
     if follow:
         if redis_url is not None:
             usage("--redis reads the history; -f follows the fabric - drop one")
-        reach = resolve_reach(model, system, connect, run_dir)
+        reach = resolve_reach(model, system, connect, run_dir, certs=certs, identity=identity)
         code: int = anyio.run(_follow, reach, keep, count, raw)
         raise typer.Exit(code)
     if redis_url is not None:

@@ -33,7 +33,17 @@ from rap_schemas import Envelope, catalog, keys
 from rap_schemas.limits import MAX_DEPTH, MAX_SAMPLE_BYTES, DecodeRejected, SafeDecoder
 
 from .cli import FAILED, OK, usage
-from .reach import SYSTEM_ENV, ConnectOpt, ModelOpt, Reach, RunDirOpt, SystemOpt, open_fabric
+from .reach import (
+    SYSTEM_ENV,
+    AsOpt,
+    CertsOpt,
+    ConnectOpt,
+    ModelOpt,
+    Reach,
+    RunDirOpt,
+    SystemOpt,
+    open_fabric,
+)
 from .reach import resolve as resolve_reach
 from .recording import (
     Recorder,
@@ -382,9 +392,15 @@ def _arrival(sample: Any) -> float:
 
 
 def _reach(
-    model: Path | None, system: str | None, connect: list[str] | None, run_dir: Path | None
+    model: Path | None,
+    system: str | None,
+    connect: list[str] | None,
+    run_dir: Path | None,
+    *,
+    certs: Path | None,
+    identity: str | None,
 ) -> Reach:
-    return resolve_reach(model, system, connect, run_dir)
+    return resolve_reach(model, system, connect, run_dir, certs=certs, identity=identity)
 
 
 def _policy(capacity: int = 4096) -> Any:
@@ -443,6 +459,8 @@ def list_cmd(
     system: SystemOpt = None,
     connect: ConnectOpt = None,
     run_dir: RunDirOpt = None,
+    certs: CertsOpt = None,
+    identity: AsOpt = None,
 ) -> None:
     """The keys on the system's fabric: kind, message type, rate and count.
 
@@ -453,7 +471,7 @@ def list_cmd(
 
     Example: `rap topic list -m examples/lidar_occlusion/model.yaml --for 5`"""
     _positive("--for", seconds)
-    reach = _reach(model, system, connect, run_dir)
+    reach = _reach(model, system, connect, run_dir, certs=certs, identity=identity)
     raise typer.Exit(_run(_list, reach, seconds, as_json))
 
 
@@ -539,6 +557,8 @@ def echo_cmd(
     system: SystemOpt = None,
     connect: ConnectOpt = None,
     run_dir: RunDirOpt = None,
+    certs: CertsOpt = None,
+    identity: AsOpt = None,
 ) -> None:
     """Print each sample on KEYEXPR, decoded, with its envelope.
 
@@ -553,7 +573,7 @@ def echo_cmd(
     Example: `rap topic echo event/anomaly -n 1 -m examples/lidar_occlusion/model.yaml`"""
     if count is not None and count < 1:
         usage(f"-n {count}: give a number of samples >= 1")
-    reach = _reach(model, system, connect, run_dir)
+    reach = _reach(model, system, connect, run_dir, certs=certs, identity=identity)
     [full] = _exprs(reach.system, [expr], "KEYEXPR")
     raise typer.Exit(_run(_echo, reach, full, count, as_json))
 
@@ -606,6 +626,8 @@ def hz_cmd(
     system: SystemOpt = None,
     connect: ConnectOpt = None,
     run_dir: RunDirOpt = None,
+    certs: CertsOpt = None,
+    identity: AsOpt = None,
 ) -> None:
     """The rate of each key matching KEYEXPR, refreshed every second.
 
@@ -618,7 +640,7 @@ def hz_cmd(
     if window < 1:
         usage(f"--window {window}: give a number of intervals >= 1")
     _positive("--for", seconds)
-    reach = _reach(model, system, connect, run_dir)
+    reach = _reach(model, system, connect, run_dir, certs=certs, identity=identity)
     [full] = _exprs(reach.system, [expr], "KEYEXPR")
     raise typer.Exit(_run(_hz, reach, full, window, seconds, as_json))
 
@@ -731,6 +753,8 @@ def record_cmd(
     system: SystemOpt = None,
     connect: ConnectOpt = None,
     run_dir: RunDirOpt = None,
+    certs: CertsOpt = None,
+    identity: AsOpt = None,
 ) -> None:
     """Record the system's fabric (or the keys given) into an MCAP file.
 
@@ -753,7 +777,7 @@ def record_cmd(
         usage(f"--output {output}: the folder {output.parent} does not exist - create it first")
     if output.exists() and not force:
         usage(f"--output {output}: the file exists - choose another path, or give --force")
-    reach = _reach(model, system, connect, run_dir)
+    reach = _reach(model, system, connect, run_dir, certs=certs, identity=identity)
     chosen = _exprs(reach.system, exprs, "KEYEXPR") or [keys.system_pattern(reach.system)]
     raise typer.Exit(_run(_record, reach, chosen, output, duration))
 
@@ -855,6 +879,8 @@ def replay_cmd(
     system: SystemOpt = None,
     connect: ConnectOpt = None,
     run_dir: RunDirOpt = None,
+    certs: CertsOpt = None,
+    identity: AsOpt = None,
 ) -> None:
     """Publish a recording's samples again, with the recorded timing.
 
@@ -881,7 +907,7 @@ def replay_cmd(
     ):
         first = _first_key(file)
         system = system_of(first) if first is not None else None
-    reach = _reach(model, system, connect, run_dir)
+    reach = _reach(model, system, connect, run_dir, certs=certs, identity=identity)
     only_exprs = _exprs(reach.system, only, "--only")
     exclude_exprs = _exprs(reach.system, exclude, "--exclude")
     summary = recording_summary(file)

@@ -14,7 +14,17 @@ import msgspec
 import typer
 
 from .cli import failed, usage
-from .reach import ConnectOpt, ModelOpt, Reach, RunDirOpt, SystemOpt, open_fabric, resolve
+from .reach import (
+    AsOpt,
+    CertsOpt,
+    ConnectOpt,
+    ModelOpt,
+    Reach,
+    RunDirOpt,
+    SystemOpt,
+    open_fabric,
+    resolve,
+)
 
 if TYPE_CHECKING:
     from adaptation_manager.views import CycleTrace, TraceReply
@@ -137,6 +147,8 @@ def trace(
     system: SystemOpt = None,
     connect: ConnectOpt = None,
     run_dir: RunDirOpt = None,
+    certs: CertsOpt = None,
+    identity: AsOpt = None,
     timeout: Annotated[
         float, typer.Option("--timeout", help="Seconds to wait for the manager's answer.")
     ] = 5.0,
@@ -169,7 +181,7 @@ def trace(
                 "one, or '..' and its end as rap status shows it) - copy it from rap status, "
                 "rap logs or the dashboard"
             )
-    reach = resolve(model, system, connect, run_dir)
+    reach = resolve(model, system, connect, run_dir, certs=certs, identity=identity)
     payload = msgspec.json.encode(
         {"last": True, "executed": executed} if last else {"cycle": cycle}
     )

@@ -48,7 +48,17 @@ import msgspec
 import typer
 
 from .cli import failed, usage
-from .reach import ConnectOpt, ModelOpt, Reach, RunDirOpt, SystemOpt, open_fabric, resolve
+from .reach import (
+    AsOpt,
+    CertsOpt,
+    ConnectOpt,
+    ModelOpt,
+    Reach,
+    RunDirOpt,
+    SystemOpt,
+    open_fabric,
+    resolve,
+)
 
 if TYPE_CHECKING:
     import numpy as np
@@ -1197,6 +1207,8 @@ def view(
     system: SystemOpt = None,
     connect: ConnectOpt = None,
     run_dir: RunDirOpt = None,
+    certs: CertsOpt = None,
+    identity: AsOpt = None,
 ) -> None:
     """Show a running system live in Rerun: the world, the robot's pose and path, its
     scans, the anomalies, plans and verdicts of each MAPLE-K cycle (every entity carries
@@ -1225,7 +1237,7 @@ def view(
         _check_save(save)
     if connect_viewer is not None:
         _check_url(connect_viewer)
-    reach = resolve(model, system, connect, run_dir)
+    reach = resolve(model, system, connect, run_dir, certs=certs, identity=identity)
     spec = _world(world, model, reach)
     if save is None and connect_viewer is None:
         _check_spawn()
