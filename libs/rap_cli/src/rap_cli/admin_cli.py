@@ -25,15 +25,10 @@ from rap_schemas.admin import (
 
 from .cli import FAILED, OK, failed, usage
 from .reach import (
-    AsOpt,
-    CertsOpt,
-    ConnectOpt,
-    ModelOpt,
     Reach,
-    RunDirOpt,
-    SystemOpt,
+    Where,
     open_fabric,
-    resolve,
+    reach_options,
 )
 
 __all__ = ["register"]
@@ -212,17 +207,14 @@ async def _watch(reach: Reach, timeout: float, as_json: bool, interval: float) -
             await anyio.sleep(interval)
 
 
+@reach_options
 def status(
-    model: ModelOpt = None,
-    system: SystemOpt = None,
-    connect: ConnectOpt = None,
-    run_dir: RunDirOpt = None,
-    certs: CertsOpt = None,
-    identity: AsOpt = None,
     as_json: JsonOpt = False,
     watch: Annotated[bool, typer.Option("--watch", "-w", help="Refresh until Ctrl-C.")] = False,
     interval: Annotated[float, typer.Option("--interval", help="Seconds between refreshes.")] = 1.0,
     timeout: TimeoutOpt = 2.0,
+    *,
+    where: Where,
 ) -> None:
     """Every component of the running system: compute node, stage, state (idle, active,
     paused, failed, gone), last cycle, handler latency p50/p99, inbox, errors. With a
@@ -232,7 +224,7 @@ def status(
     Example: `rap status --watch` (in the model's folder);
     `rap status -c tcp/192.0.2.5:7447 -s demo --json`
     """
-    reach = resolve(model, system, connect, run_dir, certs=certs, identity=identity)
+    reach = where.resolve()
     if watch:
         try:
             anyio.run(_watch, reach, timeout, as_json, interval)
@@ -277,22 +269,19 @@ def _values(pairs: list[str]) -> dict[str, Any]:
 
 
 @config_app.command("get")
+@reach_options
 def config_get(
     component: ComponentArg,
-    model: ModelOpt = None,
-    system: SystemOpt = None,
-    connect: ConnectOpt = None,
-    run_dir: RunDirOpt = None,
-    certs: CertsOpt = None,
-    identity: AsOpt = None,
     as_json: JsonOpt = False,
     timeout: TimeoutOpt = 5.0,
+    *,
+    where: Where,
 ) -> None:
     """Print a component's config.
 
     Example: `rap config get analysis`
     """
-    reach = resolve(model, system, connect, run_dir, certs=certs, identity=identity)
+    reach = where.resolve()
     reply = _one(reach, component, "config", None, timeout)
     if not reply.ok:
         _report(reply, as_json)
@@ -306,6 +295,7 @@ def config_get(
 
 
 @config_app.command("set")
+@reach_options
 def config_set(
     component: ComponentArg,
     values: Annotated[
@@ -316,21 +306,17 @@ def config_set(
             metavar="KEY=VALUE...",
         ),
     ],
-    model: ModelOpt = None,
-    system: SystemOpt = None,
-    connect: ConnectOpt = None,
-    run_dir: RunDirOpt = None,
-    certs: CertsOpt = None,
-    identity: AsOpt = None,
     as_json: JsonOpt = False,
     timeout: TimeoutOpt = 5.0,
+    *,
+    where: Where,
 ) -> None:
     """Set config fields of a running component; it takes them before its next handler
     call. A bad value is refused with its `$.path` and the old config kept (exit 1).
 
     Example: `rap config set analysis threshold=0.4 window=5`
     """
-    reach = resolve(model, system, connect, run_dir, certs=certs, identity=identity)
+    reach = where.resolve()
     reply = _one(reach, component, "config", ConfigRequest(values=_values(values)), timeout)
     _report(reply, as_json)
 
@@ -339,18 +325,15 @@ def config_set(
 
 
 def _simple(verb: str, doc: str, timeout_default: float = 5.0) -> Any:
+    @reach_options
     def command(
         component: ComponentArg,
-        model: ModelOpt = None,
-        system: SystemOpt = None,
-        connect: ConnectOpt = None,
-        run_dir: RunDirOpt = None,
-        certs: CertsOpt = None,
-        identity: AsOpt = None,
         as_json: JsonOpt = False,
         timeout: TimeoutOpt = timeout_default,
+        *,
+        where: Where,
     ) -> None:
-        reach = resolve(model, system, connect, run_dir, certs=certs, identity=identity)
+        reach = where.resolve()
         _report(_one(reach, component, verb, None, timeout), as_json)
 
     command.__doc__ = doc
@@ -358,6 +341,7 @@ def _simple(verb: str, doc: str, timeout_default: float = 5.0) -> Any:
     return command
 
 
+@reach_options
 def swap(
     component: ComponentArg,
     target: Annotated[
@@ -369,14 +353,10 @@ def swap(
             metavar="MODULE:ATTR",
         ),
     ],
-    model: ModelOpt = None,
-    system: SystemOpt = None,
-    connect: ConnectOpt = None,
-    run_dir: RunDirOpt = None,
-    certs: CertsOpt = None,
-    identity: AsOpt = None,
     as_json: JsonOpt = False,
     timeout: TimeoutOpt = 30.0,
+    *,
+    where: Where,
 ) -> None:
     """Replace a component's implementation in its running process: its state is taken
     and restored into the new one, and what arrives meanwhile waits in its inboxes (no
@@ -387,10 +367,11 @@ def swap(
     """
     if ":" not in target:
         usage(f"{target!r}: give MODULE:ATTR (e.g. my_robot.analysis_v2:analysis)")
-    reach = resolve(model, system, connect, run_dir, certs=certs, identity=identity)
+    reach = where.resolve()
     _report(_one(reach, component, "swap", ComponentSwap(target=target), timeout), as_json)
 
 
+@reach_options
 def restart(
     component: ComponentArg,
     from_snapshot: Annotated[
@@ -400,14 +381,10 @@ def restart(
             help="Restore its latest snapshot in knowledge (else it keeps the state it has).",
         ),
     ] = False,
-    model: ModelOpt = None,
-    system: SystemOpt = None,
-    connect: ConnectOpt = None,
-    run_dir: RunDirOpt = None,
-    certs: CertsOpt = None,
-    identity: AsOpt = None,
     as_json: JsonOpt = False,
     timeout: TimeoutOpt = 30.0,
+    *,
+    where: Where,
 ) -> None:
     """Restart a component in its process: its liveliness goes down and up, it is
     re-created from its implementation when that is a function, and it keeps the state
@@ -416,24 +393,21 @@ def restart(
 
     Example: `rap restart analysis`, `rap restart analysis --from-snapshot`
     """
-    reach = resolve(model, system, connect, run_dir, certs=certs, identity=identity)
+    reach = where.resolve()
     request = RestartRequest(from_snapshot=from_snapshot)
     _report(_one(reach, component, "restart", request, timeout), as_json)
 
 
+@reach_options
 def restore(
     component: ComponentArg,
     version: Annotated[
         int, typer.Option("--version", help="The snapshot's knowledge version (0: the latest).")
     ] = 0,
-    model: ModelOpt = None,
-    system: SystemOpt = None,
-    connect: ConnectOpt = None,
-    run_dir: RunDirOpt = None,
-    certs: CertsOpt = None,
-    identity: AsOpt = None,
     as_json: JsonOpt = False,
     timeout: TimeoutOpt = 10.0,
+    *,
+    where: Where,
 ) -> None:
     """Restore a component's state from a snapshot kept in knowledge (`rap snapshot`).
 
@@ -442,7 +416,7 @@ def restore(
     """
     if version < 0:
         usage(f"--version {version}: give a version >= 0")
-    reach = resolve(model, system, connect, run_dir, certs=certs, identity=identity)
+    reach = where.resolve()
     reply = _one(reach, component, "restore", RestoreRequest(version=version), timeout)
     _report(reply, as_json)
 

@@ -33,16 +33,11 @@ from rap_schemas.limits import DecodeRejected, SafeDecoder
 from .cli import OK, failed, usage
 from .reach import (
     SYSTEM_ENV,
-    AsOpt,
-    CertsOpt,
-    ConnectOpt,
-    ModelOpt,
     Reach,
-    RunDirOpt,
-    SystemOpt,
+    Where,
     open_fabric,
+    reach_options,
 )
-from .reach import resolve as resolve_reach
 
 __all__ = [
     "LEVELS",
@@ -294,6 +289,7 @@ async def _until_signal(scope: anyio.CancelScope) -> None:
 # -- the command ---------------------------------------------------------------------------
 
 
+@reach_options
 def logs_cmd(
     component: Annotated[
         str | None,
@@ -333,12 +329,8 @@ def logs_cmd(
             show_default=False,
         ),
     ] = None,
-    model: ModelOpt = None,
-    system: SystemOpt = None,
-    connect: ConnectOpt = None,
-    run_dir: RunDirOpt = None,
-    certs: CertsOpt = None,
-    identity: AsOpt = None,
+    *,
+    where: Where,
 ) -> None:
     """Show the structured logs of a system's processes (knowledge, runners, trust
     checkers): one line per record (time UTC, level, component or process@compute node,
@@ -368,14 +360,14 @@ def logs_cmd(
     if follow:
         if redis_url is not None:
             usage("--redis reads the history; -f follows the fabric - drop one")
-        reach = resolve_reach(model, system, connect, run_dir, certs=certs, identity=identity)
+        reach = where.resolve()
         code: int = anyio.run(_follow, reach, keep, count, raw)
         raise typer.Exit(code)
     if redis_url is not None:
         import redis
         from rap_sdk.logs import redis_stream
 
-        stream = redis_stream(_system(model, system))
+        stream = redis_stream(_system(where.model, where.system))
         try:
             entries, bad = anyio.run(read_redis, redis_url, stream, since_ns)
         except (redis.RedisError, OSError, ValueError) as exc:  # ValueError: a bad URL
@@ -383,9 +375,9 @@ def logs_cmd(
                 f"cannot read the log stream {stream} at {redis_url}: {exc} - is Redis running "
                 "there (check --redis)?"
             )
-        where = f"{redis_url} {stream}"
+        source = f"{redis_url} {stream}"
     else:
-        base = _run_dir(model, run_dir)
+        base = _run_dir(where.model, where.run_dir)
         files = log_files(base)
         if not files:
             failed(
@@ -393,7 +385,7 @@ def logs_cmd(
                 "model there (check --run-dir)?"
             )
         entries, bad = anyio.run(anyio.to_thread.run_sync, read_files, files)
-        where = str(base)
+        source = str(base)
     shown = 0
     for e in entries:
         if keep(e):
@@ -401,14 +393,14 @@ def logs_cmd(
             shown += 1
     if not shown and entries:
         typer.echo(
-            f"rap: no record of {len(entries)} in {where} matches"
+            f"rap: no record of {len(entries)} in {source} matches"
             + (f" component {component!r}" if component else "")
             + (f", level {name} or above" if name != LEVELS[0] else "")
             + (" since then" if since_ns else ""),
             err=True,
         )
     if bad:
-        typer.echo(f"rap: warning: {bad} line(s) of {where} could not be read", err=True)
+        typer.echo(f"rap: warning: {bad} line(s) of {source} could not be read", err=True)
     raise typer.Exit(OK)
 
 

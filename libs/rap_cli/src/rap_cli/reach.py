@@ -21,12 +21,14 @@ machine is reached on its loopback ``tcp/`` endpoint, without one.
 
 from __future__ import annotations
 
+import functools
+import inspect
 import os
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
@@ -49,8 +51,10 @@ __all__ = [
     "Reach",
     "RunDirOpt",
     "SystemOpt",
+    "Where",
     "find_model",
     "open_fabric",
+    "reach_options",
     "resolve",
 ]
 
@@ -132,6 +136,61 @@ class Reach:
     """The model's plan, when one was given or found."""
     tls: TlsFiles | None = None
     """The certificate presented to ``tls/`` endpoints (None: no TLS)."""
+
+
+@dataclass(frozen=True)
+class Where:
+    """The reach options of one command line (see :func:`reach_options`)."""
+
+    model: Path | None = None
+    system: str | None = None
+    connect: list[str] | None = None
+    run_dir: Path | None = None
+    certs: Path | None = None
+    identity: str | None = None
+
+    def resolve(self) -> Reach:
+        return resolve(
+            self.model,
+            self.system,
+            self.connect,
+            self.run_dir,
+            certs=self.certs,
+            identity=self.identity,
+        )
+
+
+_REACH_OPTIONS: tuple[tuple[str, Any], ...] = (
+    ("model", ModelOpt),
+    ("system", SystemOpt),
+    ("connect", ConnectOpt),
+    ("run_dir", RunDirOpt),
+    ("certs", CertsOpt),
+    ("identity", AsOpt),
+)
+
+
+def reach_options(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """Give a typer command the reach options (``--model``, ``--system``, ``--connect``,
+    ``--run-dir``, ``--certs``, ``--as``): ``fn`` takes them as one keyword argument,
+    ``where`` (a :class:`Where`); its command line lists them after its own."""
+    sig = inspect.signature(fn, eval_str=True)
+    own = [p for p in sig.parameters.values() if p.name != "where"]
+    added = [
+        inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=None, annotation=ann)
+        for name, ann in _REACH_OPTIONS
+    ]
+
+    @functools.wraps(fn)
+    def command(*args: Any, **kwargs: Any) -> Any:
+        where = Where(**{name: kwargs.pop(name, None) for name, _ in _REACH_OPTIONS})
+        return fn(*args, where=where, **kwargs)
+
+    params = [*own, *added]
+    command.__signature__ = sig.replace(parameters=params)  # type: ignore[attr-defined]
+    command.__annotations__ = {p.name: p.annotation for p in params}
+    command.__annotations__["return"] = sig.return_annotation
+    return command
 
 
 def find_model(model: Path | None) -> Path | None:

@@ -14,6 +14,7 @@ full (``rap/demo/data/tb1/scan``). The fabric is reached as every operate verb r
 
 from __future__ import annotations
 
+import dataclasses
 import datetime
 import math
 import os
@@ -35,16 +36,11 @@ from rap_schemas.limits import MAX_DEPTH, MAX_SAMPLE_BYTES, DecodeRejected, Safe
 from .cli import FAILED, OK, usage
 from .reach import (
     SYSTEM_ENV,
-    AsOpt,
-    CertsOpt,
-    ConnectOpt,
-    ModelOpt,
     Reach,
-    RunDirOpt,
-    SystemOpt,
+    Where,
     open_fabric,
+    reach_options,
 )
-from .reach import resolve as resolve_reach
 from .recording import (
     Recorder,
     RecordingError,
@@ -391,18 +387,6 @@ def _arrival(sample: Any) -> float:
 # -- running on the fabric ------------------------------------------------------------------
 
 
-def _reach(
-    model: Path | None,
-    system: str | None,
-    connect: list[str] | None,
-    run_dir: Path | None,
-    *,
-    certs: Path | None,
-    identity: str | None,
-) -> Reach:
-    return resolve_reach(model, system, connect, run_dir, certs=certs, identity=identity)
-
-
 def _policy(capacity: int = 4096) -> Any:
     from rap_sdk import InboxPolicy, Overflow
 
@@ -452,15 +436,12 @@ JsonOpt = Annotated[bool, typer.Option("--json", help="JSON output (see the desc
 
 
 @topic_app.command("list")
+@reach_options
 def list_cmd(
     seconds: SecondsOpt = 2.0,
     as_json: JsonOpt = False,
-    model: ModelOpt = None,
-    system: SystemOpt = None,
-    connect: ConnectOpt = None,
-    run_dir: RunDirOpt = None,
-    certs: CertsOpt = None,
-    identity: AsOpt = None,
+    *,
+    where: Where,
 ) -> None:
     """The keys on the system's fabric: kind, message type, rate and count.
 
@@ -471,7 +452,7 @@ def list_cmd(
 
     Example: `rap topic list -m examples/lidar_occlusion/model.yaml --for 5`"""
     _positive("--for", seconds)
-    reach = _reach(model, system, connect, run_dir, certs=certs, identity=identity)
+    reach = where.resolve()
     raise typer.Exit(_run(_list, reach, seconds, as_json))
 
 
@@ -539,6 +520,7 @@ async def _list(reach: Reach, seconds: float, as_json: bool) -> int:
 
 
 @topic_app.command("echo")
+@reach_options
 def echo_cmd(
     expr: Annotated[
         str,
@@ -553,12 +535,8 @@ def echo_cmd(
         typer.Option("-n", "--count", help="Stop after this many samples.", show_default=False),
     ] = None,
     as_json: JsonOpt = False,
-    model: ModelOpt = None,
-    system: SystemOpt = None,
-    connect: ConnectOpt = None,
-    run_dir: RunDirOpt = None,
-    certs: CertsOpt = None,
-    identity: AsOpt = None,
+    *,
+    where: Where,
 ) -> None:
     """Print each sample on KEYEXPR, decoded, with its envelope.
 
@@ -573,7 +551,7 @@ def echo_cmd(
     Example: `rap topic echo event/anomaly -n 1 -m examples/lidar_occlusion/model.yaml`"""
     if count is not None and count < 1:
         usage(f"-n {count}: give a number of samples >= 1")
-    reach = _reach(model, system, connect, run_dir, certs=certs, identity=identity)
+    reach = where.resolve()
     [full] = _exprs(reach.system, [expr], "KEYEXPR")
     raise typer.Exit(_run(_echo, reach, full, count, as_json))
 
@@ -604,6 +582,7 @@ async def _echo(reach: Reach, expr: str, count: int | None, as_json: bool) -> in
 
 
 @topic_app.command("hz")
+@reach_options
 def hz_cmd(
     expr: Annotated[
         str,
@@ -622,12 +601,8 @@ def hz_cmd(
         ),
     ] = None,
     as_json: JsonOpt = False,
-    model: ModelOpt = None,
-    system: SystemOpt = None,
-    connect: ConnectOpt = None,
-    run_dir: RunDirOpt = None,
-    certs: CertsOpt = None,
-    identity: AsOpt = None,
+    *,
+    where: Where,
 ) -> None:
     """The rate of each key matching KEYEXPR, refreshed every second.
 
@@ -640,7 +615,7 @@ def hz_cmd(
     if window < 1:
         usage(f"--window {window}: give a number of intervals >= 1")
     _positive("--for", seconds)
-    reach = _reach(model, system, connect, run_dir, certs=certs, identity=identity)
+    reach = where.resolve()
     [full] = _exprs(reach.system, [expr], "KEYEXPR")
     raise typer.Exit(_run(_hz, reach, full, window, seconds, as_json))
 
@@ -725,6 +700,7 @@ class _Progress:
             typer.echo("", err=True)
 
 
+@reach_options
 def record_cmd(
     exprs: Annotated[
         list[str] | None,
@@ -749,12 +725,8 @@ def record_cmd(
         ),
     ] = None,
     force: Annotated[bool, typer.Option("--force", help="Overwrite FILE if it exists.")] = False,
-    model: ModelOpt = None,
-    system: SystemOpt = None,
-    connect: ConnectOpt = None,
-    run_dir: RunDirOpt = None,
-    certs: CertsOpt = None,
-    identity: AsOpt = None,
+    *,
+    where: Where,
 ) -> None:
     """Record the system's fabric (or the keys given) into an MCAP file.
 
@@ -777,7 +749,7 @@ def record_cmd(
         usage(f"--output {output}: the folder {output.parent} does not exist - create it first")
     if output.exists() and not force:
         usage(f"--output {output}: the file exists - choose another path, or give --force")
-    reach = _reach(model, system, connect, run_dir, certs=certs, identity=identity)
+    reach = where.resolve()
     chosen = _exprs(reach.system, exprs, "KEYEXPR") or [keys.system_pattern(reach.system)]
     raise typer.Exit(_run(_record, reach, chosen, output, duration))
 
@@ -845,6 +817,7 @@ def _first_key(path: Path) -> str | None:
     return None
 
 
+@reach_options
 def replay_cmd(
     file: Annotated[
         Path,
@@ -875,12 +848,8 @@ def replay_cmd(
             show_default=False,
         ),
     ] = None,
-    model: ModelOpt = None,
-    system: SystemOpt = None,
-    connect: ConnectOpt = None,
-    run_dir: RunDirOpt = None,
-    certs: CertsOpt = None,
-    identity: AsOpt = None,
+    *,
+    where: Where,
 ) -> None:
     """Publish a recording's samples again, with the recorded timing.
 
@@ -900,14 +869,14 @@ def replay_cmd(
     if not file.is_file():
         usage(f"{file}: no such file - give a recording made by rap record")
     if (
-        system is None
-        and model is None
+        where.system is None
+        and where.model is None
         and not Path("model.yaml").is_file()
         and not os.environ.get(SYSTEM_ENV)
     ):
         first = _first_key(file)
-        system = system_of(first) if first is not None else None
-    reach = _reach(model, system, connect, run_dir, certs=certs, identity=identity)
+        where = dataclasses.replace(where, system=system_of(first) if first else None)
+    reach = where.resolve()
     only_exprs = _exprs(reach.system, only, "--only")
     exclude_exprs = _exprs(reach.system, exclude, "--exclude")
     summary = recording_summary(file)

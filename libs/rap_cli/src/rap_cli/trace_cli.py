@@ -15,15 +15,10 @@ import typer
 
 from .cli import failed, usage
 from .reach import (
-    AsOpt,
-    CertsOpt,
-    ConnectOpt,
-    ModelOpt,
     Reach,
-    RunDirOpt,
-    SystemOpt,
+    Where,
     open_fabric,
-    resolve,
+    reach_options,
 )
 
 if TYPE_CHECKING:
@@ -122,6 +117,7 @@ def render(trace: CycleTrace) -> str:
     return "\n".join(lines)
 
 
+@reach_options
 def trace(
     cycle: Annotated[
         str | None,
@@ -143,15 +139,11 @@ def trace(
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON (rap trace's reply).")] = (
         False
     ),
-    model: ModelOpt = None,
-    system: SystemOpt = None,
-    connect: ConnectOpt = None,
-    run_dir: RunDirOpt = None,
-    certs: CertsOpt = None,
-    identity: AsOpt = None,
     timeout: Annotated[
         float, typer.Option("--timeout", help="Seconds to wait for the manager's answer.")
     ] = 5.0,
+    *,
+    where: Where,
 ) -> None:
     """The causal chain of one loop cycle: each handler call from the sample that
     started it (the scan) to the last one (the plan sent to the robot), under the call
@@ -181,7 +173,7 @@ def trace(
                 "one, or '..' and its end as rap status shows it) - copy it from rap status, "
                 "rap logs or the dashboard"
             )
-    reach = resolve(model, system, connect, run_dir, certs=certs, identity=identity)
+    reach = where.resolve()
     payload = msgspec.json.encode(
         {"last": True, "executed": executed} if last else {"cycle": cycle}
     )

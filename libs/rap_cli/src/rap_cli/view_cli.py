@@ -49,15 +49,10 @@ import typer
 
 from .cli import failed, usage
 from .reach import (
-    AsOpt,
-    CertsOpt,
-    ConnectOpt,
-    ModelOpt,
     Reach,
-    RunDirOpt,
-    SystemOpt,
+    Where,
     open_fabric,
-    resolve,
+    reach_options,
 )
 
 if TYPE_CHECKING:
@@ -1166,6 +1161,7 @@ async def _follow(
     return progress, closed, sink
 
 
+@reach_options
 def view(
     spawn: Annotated[
         bool, typer.Option("--spawn", help="Spawn a Rerun viewer and stream to it (the default).")
@@ -1203,12 +1199,8 @@ def view(
             show_default=False,
         ),
     ] = None,
-    model: ModelOpt = None,
-    system: SystemOpt = None,
-    connect: ConnectOpt = None,
-    run_dir: RunDirOpt = None,
-    certs: CertsOpt = None,
-    identity: AsOpt = None,
+    *,
+    where: Where,
 ) -> None:
     """Show a running system live in Rerun: the world, the robot's pose and path, its
     scans, the anomalies, plans and verdicts of each MAPLE-K cycle (every entity carries
@@ -1237,8 +1229,8 @@ def view(
         _check_save(save)
     if connect_viewer is not None:
         _check_url(connect_viewer)
-    reach = resolve(model, system, connect, run_dir, certs=certs, identity=identity)
-    spec = _world(world, model, reach)
+    reach = where.resolve()
+    spec = _world(world, where.model, reach)
     if save is None and connect_viewer is None:
         _check_spawn()
     translator = Translator(reach.system, cycle_keys(reach.plan), spec)
