@@ -221,13 +221,16 @@ def _request(payload: bytes, type_: type[Any]) -> Any:
 
 async def _verb(rt: NodeRuntime, verb: str, payload: bytes) -> AdminReply:
     name = rt.node.name
-    ok = AdminReply
+
+    def done(**fields: Any) -> AdminReply:
+        return AdminReply(ok=True, verb=verb, component=name, **fields)
+
     if verb == "status":
-        return ok(ok=True, verb=verb, component=name, status=status(rt))
+        return done(status=status(rt))
     if verb == "config":
         req: ConfigRequest = _request(payload, ConfigRequest)
         if not req.values:
-            return ok(ok=True, verb=verb, component=name, config=_config(rt))
+            return done(config=_config(rt))
         if rt.node.config is None:
             return _refused(verb, rt, f"{name} declares no config Struct: nothing to set")
         unknown = sorted(set(req.values) - set(type(rt.node.config).__struct_fields__))
@@ -245,40 +248,28 @@ async def _verb(rt: NodeRuntime, verb: str, payload: bytes) -> AdminReply:
         except ConfigError as exc:
             m = _PATH.search(str(exc))
             return _refused(verb, rt, f"{exc}; the config is unchanged", m.group(1) if m else "")
-        return ok(
-            ok=True,
-            verb=verb,
-            component=name,
+        return done(
             config=_config(rt),
             message=f"set {', '.join(sorted(req.values))}",
         )
     if verb == "pause":
-        done = await rt.pause()
-        return ok(
-            ok=True,
-            verb=verb,
-            component=name,
+        paused = await rt.pause()
+        return done(
             status=status(rt),
-            message="paused" if done else "was paused already",
+            message="paused" if paused else "was paused already",
         )
     if verb == "resume":
-        done = rt.resume()
-        return ok(
-            ok=True,
-            verb=verb,
-            component=name,
+        resumed = rt.resume()
+        return done(
             status=status(rt),
-            message="resumed" if done else "was not paused",
+            message="resumed" if resumed else "was not paused",
         )
     if verb == "swap":
         swap: ComponentSwap = _request(payload, ComponentSwap)
         new = await anyio.to_thread.run_sync(load_implementation, swap.target)
         old = rt.node.implementation
         await rt.swap(new)
-        return ok(
-            ok=True,
-            verb=verb,
-            component=name,
+        return done(
             status=status(rt),
             message=f"swapped {old or 'its implementation'} for {swap.target}, state handed over",
         )
@@ -295,13 +286,10 @@ async def _verb(rt: NodeRuntime, verb: str, payload: bytes) -> AdminReply:
             state = snap.state
             how = f"from its snapshot taken at {_when(snap.ts)} UTC"
         await rt.restart(fresh, state)
-        return ok(ok=True, verb=verb, component=name, status=status(rt), message=f"restarted {how}")
+        return done(status=status(rt), message=f"restarted {how}")
     if verb == "snapshot":
         info = await _snapshot(rt)
-        return ok(
-            ok=True,
-            verb=verb,
-            component=name,
+        return done(
             snapshot=info,
             message=f"kept as {info.key} version {info.version}",
         )
@@ -310,10 +298,7 @@ async def _verb(rt: NodeRuntime, verb: str, payload: bytes) -> AdminReply:
         snap = await _stored(rt.knowledge, name, rr.version)
         async with rt.exclusive():
             rt.node.restore(snap.state)
-        return ok(
-            ok=True,
-            verb=verb,
-            component=name,
+        return done(
             status=status(rt),
             message=f"restored the snapshot of {snap.implementation} taken at {_when(snap.ts)} UTC",
         )
