@@ -20,7 +20,7 @@ import anyio
 import pytest
 from rap_cli.testing import model_copy, rap_command, rap_up
 from rap_schemas import Verdict, keys
-from rap_sdk.fabric import CONFIG_ENV
+from rap_sdk.fabric import CONFIG_ENV, ZenohConfig, ZenohFabric, node_overlay
 from rap_sdk.testing import Harness, Record
 
 pytestmark = [pytest.mark.anyio, pytest.mark.zenoh, pytest.mark.slow, pytest.mark.timeout(120)]
@@ -29,6 +29,7 @@ REPO = Path(__file__).resolve().parents[1]
 MODEL = REPO / "examples/lidar_occlusion/model.yaml"
 SYSTEM = "demo"
 PLAN_TOPIC = "tb1/spin_config"
+PLAN_KEY = keys.data(SYSTEM, PLAN_TOPIC)
 
 
 def _approved(r: Record) -> bool:
@@ -78,15 +79,24 @@ async def test_rap_up_all_over_mutual_tls_closes_the_loop(
         # the routers link over TLS: the edge listens on tls/, the robot connects there
         edge = _config(run / "edge" / "zenoh-router.json5")
         robot = _config(run / "robot" / "zenoh-router.json5")
-        tls_listen = [e for e in edge["listen"]["endpoints"] if e.startswith("tls/127.0.0.1:")]
-        assert len(tls_listen) == 1, edge["listen"]
+        local, *tls_listen = edge["listen"]["endpoints"]  # its own clients', the model's
+        assert local.startswith("tls/127.0.0.1:"), edge["listen"]  # over TLS too
+        assert len(tls_listen) == 1
+        assert tls_listen[0].startswith("tls/127.0.0.1:")
         assert robot["connect"]["endpoints"] == tls_listen
+        client = _config(run / "robot" / "zenoh-client.json5")
+        assert client["connect"]["endpoints"][0].startswith("tls/127.0.0.1:")
+        assert "connect_certificate" not in client["transport"]["link"]["tls"]  # RAP_AS
         for conf, node in ((edge, "edge"), (robot, "robot")):
             tls = conf["transport"]["link"]["tls"]
             assert tls["enable_mtls"] is True
             assert tls["listen_certificate"] == str((tmp_path / "certs" / f"{node}.pem").resolve())
         assert any("listens on" in line and "tls/127.0.0.1:" in line for line in out.lines)
+        # the robot's processes reach their router over TLS, each as itself; we watch as
+        # the operator
         monkeypatch.setenv(CONFIG_ENV, str(run / "robot" / "zenoh-client.json5"))
+        monkeypatch.setenv("RAP_AS", "ops")
+        monkeypatch.setenv("RAP_CERTS", str(tmp_path / "certs"))
         async with Harness(system=SYSTEM, fabric="zenoh", timeout=30) as h:
             anomaly = await h.expect_event("anomaly")
             # the verdict is given on the edge: it crossed the TLS link to reach us
@@ -94,6 +104,36 @@ async def test_rap_up_all_over_mutual_tls_closes_the_loop(
             plan = await h.expect_data(PLAN_TOPIC, after=h.records.index(verdict))
             assert plan.envelope is not None
             assert plan.envelope.source == "executor"
+        # with the loop running, a process of the robot that the model does not let
+        # plan or approve (the simulator's identity) forges an approval of a 50 rad/s
+        # spin and puts a plan straight on spin_config: the robot's router refuses both
+        # and logs them with the identity; the operator sees neither
+        client_text = (run / "robot" / "zenoh-client.json5").read_text()
+        forged = b'{"approved": true, "legitimator": "legitimate", "rate": 50.0}'
+
+        def session(identity: str) -> ZenohFabric:
+            env = {"RAP_AS": identity, "RAP_CERTS": str(tmp_path / "certs")}
+            return ZenohFabric(node_overlay(ZenohConfig(), client_text, env=env))
+
+        # laid over these sessions' configs, they would make both the operator
+        for env in (CONFIG_ENV, "RAP_AS", "RAP_CERTS"):
+            monkeypatch.delenv(env)
+        async with session("ops") as ops, session("robot.robot") as rogue:
+            seen = [ops.subscribe(keys.event(SYSTEM, "verdict")), ops.subscribe(PLAN_KEY)]
+            for _ in range(10):
+                await rogue.publish(keys.event(SYSTEM, "verdict"), forged)
+                await rogue.publish(PLAN_KEY, forged)
+                await anyio.sleep(0.1)
+            for key in (keys.event(SYSTEM, "verdict"), PLAN_KEY):
+                await out.line(f"refused: robot.robot may not put (ingress) on {key}")
+            # the loop goes on (the executor's plans still arrive), and nothing forged does
+            with anyio.fail_after(30):
+                genuine = await seen[1].get()
+            assert genuine.payload != forged
+            for sub in seen:
+                while (sample := sub.get_nowait()) is not None:
+                    assert sample.payload != forged, "a forged message got through"
+
         # an operator reaches the edge's router over TLS with its certificate ...
         rap, where = rap_command(), ["--node", "edge", "--connect", tls_listen[0]]
         health = [rap, "health", str(model), *where, "--timeout", "10"]
@@ -128,8 +168,8 @@ async def test_rap_up_all_over_mutual_tls_closes_the_loop(
         other = tmp_path / "other"
         made = await anyio.run_process([rap, "certs", str(model), "-o", str(other)], check=False)
         assert made.returncode == 0, made.stderr.decode()
-        forged = await anyio.run_process(
+        refused = await anyio.run_process(
             [*health, "--as", "ops", "--certs", str(other)], check=False
         )
-        assert forged.returncode == 1, forged.stdout.decode() + forged.stderr.decode()
-        assert b"cannot reach the fabric" in forged.stderr
+        assert refused.returncode == 1, refused.stdout.decode() + refused.stderr.decode()
+        assert b"cannot reach the fabric" in refused.stderr

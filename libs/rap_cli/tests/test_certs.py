@@ -63,15 +63,23 @@ def test_the_ca_signs_one_certificate_per_identity(tmp_path: Path) -> None:
     certs = tmp_path / "certs"
     written = write_certs(_plan(_model(tmp_path)), certs, days=30)
     names = sorted(p.name for p in written)
-    assert names == sorted(
-        f"{n}{ext}" for n in ("ca", "a", "b", "alice") for ext in (".pem", ".key")
-    )
+    # the routers, the processes rap up runs (knowledge and the manager on a), operators
+    roles = {
+        "a": "router",
+        "b": "router",
+        "a.knowledge": "process",
+        "a.manager": "process",
+        "alice": "operator",
+    }
+    assert names == sorted(f"{n}{ext}" for n in ("ca", *roles) for ext in (".pem", ".key"))
     ca = _cert(certs / "ca.pem")
     assert ca.extensions.get_extension_for_class(x509.BasicConstraints).value.ca
-    for name in ("a", "b", "alice"):
+    for name, role in roles.items():
         cert = _cert(certs / f"{name}.pem")
         cert.verify_directly_issued_by(ca)  # raises when the CA did not sign it
         assert cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)[0].value == name
+        ou = cert.subject.get_attributes_for_oid(NameOID.ORGANIZATIONAL_UNIT_NAME)
+        assert ou[0].value == role
         assert not cert.extensions.get_extension_for_class(x509.BasicConstraints).value.ca
         days = (cert.not_valid_after_utc - cert.not_valid_before_utc).days
         assert 29 <= days <= 30
@@ -82,15 +90,16 @@ def test_the_ca_signs_one_certificate_per_identity(tmp_path: Path) -> None:
         assert load_pem_private_key(key, None).public_key() == cert.public_key()
         assert stat.S_IMODE((certs / f"{name}.key").stat().st_mode) == 0o600
     assert stat.S_IMODE((certs / "ca.key").stat().st_mode) == 0o600
-    # a compute node: its address, its listen hosts, its name, loopback
+    # a compute node: its address, its listen hosts, its name, loopback, compose's name
     assert _sans(_cert(certs / "a.pem")) == {
         "a",
         "10.1.2.3",
         "a-host.example",
         "localhost",
         "127.0.0.1",
+        "router",
     }
-    assert _sans(_cert(certs / "b.pem")) == {"b", "localhost", "127.0.0.1"}
+    assert _sans(_cert(certs / "b.pem")) == {"b", "localhost", "127.0.0.1", "router"}
     ip = _cert(certs / "a.pem").extensions.get_extension_for_class(x509.SubjectAlternativeName)
     assert ipaddress.ip_address("10.1.2.3") in ip.value.get_values_for_type(x509.IPAddress)
     # an operator: a common name only
@@ -124,7 +133,7 @@ def test_rap_certs_command(tmp_path: Path) -> None:
     first = runner.invoke(app, ["certs", str(model), "--days", "10", "--address", "b=192.0.2.7"])
     assert first.exit_code == 0, first.output
     assert "robot" not in first.output
-    assert "a, b, alice" in first.output
+    assert "a, b, a.knowledge, a.manager, alice" in first.output
     assert "192.0.2.7" in _sans(_cert(tmp_path / "certs" / "b.pem"))
     again = runner.invoke(app, ["certs", str(model)])
     assert again.exit_code == 2
@@ -142,7 +151,8 @@ def test_router_config_goes_over_tls_with_the_nodes_certificate(tmp_path: Path) 
     plan = _plan(_model(tmp_path))
     files = TlsFiles.of(tmp_path / "certs", "b")
     conf = router_config(plan, "b", local=["tcp/127.0.0.1:9000"], tls=files)
-    assert conf["listen"]["endpoints"] == ["tcp/127.0.0.1:9000"]  # its own clients: loopback
+    # its own clients: on loopback, over TLS too (each presents its own certificate)
+    assert conf["listen"]["endpoints"] == ["tls/127.0.0.1:9000"]
     assert conf["connect"]["endpoints"] == ["tls/10.1.2.3:7447"]  # a resolved, over TLS
     tls = conf["transport"]["link"]["tls"]
     assert tls["enable_mtls"] is True
@@ -185,12 +195,12 @@ async def test_sessions_link_over_mutual_tls_only_with_the_models_ca(
     endpoint = router["listen"]["endpoints"][0]
     assert endpoint.startswith("tls/127.0.0.1:")
     async with _session(router) as edge:
-        sub = edge.subscribe("sec/probe")
+        sub = edge.subscribe("rap/sec/data/probe")
         # an operator with a certificate of the model's CA gets through
         async with _session(client_config(endpoint, TlsFiles.of(certs, "alice"))) as alice:
             with anyio.fail_after(10):
                 while True:  # until the subscription has reached the operator's session
-                    await alice.publish("sec/probe", b"hello")
+                    await alice.publish("rap/sec/data/probe", b"hello")
                     with anyio.move_on_after(0.2):
                         sample = await sub.get()
                         break
@@ -213,16 +223,20 @@ async def test_sessions_link_over_mutual_tls_only_with_the_models_ca(
         bare = client_config(endpoint, TlsFiles.of(certs, "alice"))
         link = bare["transport"]["link"]["tls"]
         del link["connect_certificate"], link["connect_private_key"]
+        raw = ZenohConfig(mode="client", listen=[], connect=[endpoint], extra=bare)
         with pytest.raises(FabricError, match="Unable to connect"):
-            async with _session(bare):
+            async with ZenohFabric(raw):
                 pass
+        # a RAP process given such a config without an identity says what to set
+        with pytest.raises(FabricError, match="RAP_AS=<identity> and RAP_CERTS"):
+            _session(bare)
         # the operate verbs' way in (rap_cli.reach): --as NAME, --certs DIR
         reach = resolve(None, "sec", [endpoint], certs=certs, identity="alice")
         assert reach.tls == TlsFiles.of(certs.resolve(), "alice")
         async with open_fabric(reach) as op:
             with anyio.fail_after(10):
                 while True:
-                    await op.publish("sec/probe", b"operator")
+                    await op.publish("rap/sec/data/probe", b"operator")
                     with anyio.move_on_after(0.2):
                         if (await sub.get()).payload == b"operator":
                             break
@@ -236,7 +250,7 @@ async def test_sessions_link_over_mutual_tls_only_with_the_models_ca(
         async with _session(client_config(endpoint, TlsFiles.of(certs, "b"))) as b:
             with anyio.fail_after(10):
                 while True:
-                    await b.publish("sec/probe", b"again")
+                    await b.publish("rap/sec/data/probe", b"again")
                     with anyio.move_on_after(0.2):
                         if (await sub.get()).payload == b"again":
                             break

@@ -424,7 +424,9 @@ def _connection_findings(plan: DeploymentPlan) -> Iterator[ModelFinding]:
                     "it - connect an output to it, or remove the port",
                     key=True,
                 )
-            elif port.direction == "out" and (cname, pname) not in used:
+            elif port.direction == "out" and (cname, pname) not in used and not cspec.external:
+                # an external component's (the managed system's) outputs are its own
+                # data: operators' tools read them; the loop need not
                 yield ModelFinding(
                     at,
                     "warning",

@@ -284,6 +284,11 @@ class FabricSpec(_Plan, frozen=True, kw_only=True):
     """Zenoh links use TLS with mutual authentication; `rap certs` makes the certificates."""
     operators: list[Name] = []
     """Operator identities that get a certificate (`rap certs`), to reach the fabric with."""
+    acl: bool = True
+    """With `tls`: every router enforces access control derived from the model (each
+    process may publish, subscribe, read and write only what the model declares for the
+    components it runs; only operators may call admin verbs). `false` leaves any holder of
+    a certificate free to do anything."""
 
 
 class TrustSpec(_Plan, frozen=True, kw_only=True):

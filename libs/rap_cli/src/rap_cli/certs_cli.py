@@ -5,12 +5,16 @@
 
 One certificate authority (``ca.pem``, its key ``ca.key``) signs one certificate per
 identity: each compute node (``<node>.pem``, ``<node>.key``), which its router presents
-on every TLS link, and each of the model's ``fabric.operators``, which an operator's own
-session presents. A certificate's common name is its identity (Zenoh's access control
-matches it: ``cert_common_names``). A compute node's certificate names, as
+on every TLS link; each RAP process of a node (``<node>.<process>``: ``edge.runner``,
+``edge.knowledge``, ...), which it presents to its router; and each of the model's
+``fabric.operators``, which an operator's own session presents. A certificate's common
+name is its identity (Zenoh's access control matches it: ``cert_common_names``; what
+each may do is derived from the model, ``rap_cli.acl``), its organizational unit its
+role (``router``, ``process``, ``operator``). A compute node's certificate names, as
 subjectAltNames, the hosts it is reached at: its ``address``, the hosts of its ``listen``
 endpoints, its own name, ``localhost`` and ``127.0.0.1`` (``rap up --all`` runs every
-node on loopback), and any ``--address NODE=HOST``. Keys are EC P-256 (PKCS#8 PEM, mode
+node on loopback), ``router`` (its service name in the node's compose file) and any
+``--address NODE=HOST``. Keys are EC P-256 (PKCS#8 PEM, mode
 0600). ``rap up`` reads them when the model says ``fabric: {tls: true}``.
 """
 
@@ -36,6 +40,7 @@ if TYPE_CHECKING:
 __all__ = [
     "CA",
     "LOOPBACK_NAMES",
+    "ROLES",
     "CertsError",
     "Identity",
     "identities",
@@ -43,10 +48,14 @@ __all__ = [
     "write_certs",
 ]
 
+ROLES = {"compute node": "router", "process": "process", "operator": "operator"}
+"""The organizational unit (OU) of each kind of identity's certificate."""
 CA = "ca"
 """The certificate authority's file stem: ``ca.pem``, ``ca.key``."""
 LOOPBACK_NAMES = ("localhost", "127.0.0.1")
 """Names every compute node's certificate carries, for nodes run on one machine."""
+COMPOSE_ROUTER = "router"
+"""The router's service name in a node's compose file, where its processes reach it."""
 _HOST = re.compile(r"^[a-z][a-z0-9+\-]*/(?P<host>\[[^\]]*\]|[^:/\[]+)")
 _WILDCARD = {"0.0.0.0", "::", ""}
 
@@ -61,7 +70,9 @@ class Identity:
 
     name: str
     kind: str
-    """``compute node`` or ``operator``."""
+    """``compute node`` (its router), ``process`` (a RAP process of a node) or
+    ``operator``; the certificate carries it as its organizational unit, which is how
+    a receiver tells an operator's signature (``rap_sdk.identity``)."""
     hosts: tuple[str, ...] = ()
     """subjectAltNames: DNS names and IP addresses."""
 
@@ -85,12 +96,20 @@ def identities(plan: DeploymentPlan, addresses: Mapping[str, str] | None = None)
         if name in (addresses or {}):
             hosts.append((addresses or {})[name])
         hosts += LOOPBACK_NAMES
+        hosts.append(COMPOSE_ROUTER)
         clean = [h.strip("[]") for h in hosts]
         out.append(
             Identity(
                 name, "compute node", tuple(dict.fromkeys(h for h in clean if h not in _WILDCARD))
             )
         )
+    from .acl import process_grants
+
+    out += [
+        Identity(g.identity, "process")
+        for g in process_grants(plan).values()
+        if g.kind not in ("router", "operator")
+    ]
     out += [Identity(name, "operator") for name in plan.fabric.operators]
     for ident in out:
         if ident.name == CA:
@@ -203,6 +222,7 @@ def write_certs(
         subject = x509.Name(
             [
                 x509.NameAttribute(NameOID.ORGANIZATION_NAME, f"rap {plan.system}"),
+                x509.NameAttribute(NameOID.ORGANIZATIONAL_UNIT_NAME, ROLES[ident.kind]),
                 x509.NameAttribute(NameOID.COMMON_NAME, ident.name),
             ]
         )

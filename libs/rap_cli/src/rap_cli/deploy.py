@@ -32,7 +32,7 @@ from __future__ import annotations
 import hashlib
 import re
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path, PurePosixPath
 from typing import Any, Literal
 
@@ -48,6 +48,7 @@ __all__ = [
     "client_config",
     "knowledge_node",
     "node_processes",
+    "process_identity",
     "resolve_endpoint",
     "resolve_url",
     "router_config",
@@ -62,6 +63,10 @@ CONFIG_ENV = "RAP_ZENOH_CONFIG"
 """The environment variable a RAP process reads its Zenoh client config from
 (``rap_sdk.fabric.CONFIG_ENV``)."""
 NODE_ENV = "RAP_COMPUTE_NODE"
+CERTS_ENV = "RAP_CERTS"
+"""The certificates' folder (``rap certs``), with ``fabric.tls``."""
+AS_ENV = "RAP_AS"
+"""A process's identity (its certificate's common name): ``<node>.<process>``."""
 """The compute node a process runs on (``rap_sdk.runtime.NODE_ENV``)."""
 
 Role = Literal["router", "knowledge", "manager", "runner", "trust", "component"]
@@ -101,9 +106,11 @@ class Paths:
     router_config: str
     client_config: str
     data_dir: str
+    certs: str = ""
+    """The folder of the certificates (``rap certs``), with ``fabric.tls``; "" for none."""
 
     @classmethod
-    def local(cls, model: Path, run_dir: Path, node: str) -> Paths:
+    def local(cls, model: Path, run_dir: Path, node: str, certs: Path | None = None) -> Paths:
         model = model.resolve()
         node_dir = run_dir.resolve() / node
         return cls(
@@ -112,6 +119,7 @@ class Paths:
             router_config=str(node_dir / "zenoh-router.json5"),
             client_config=str(node_dir / "zenoh-client.json5"),
             data_dir=str(node_dir / "data"),
+            certs=str(certs.resolve()) if certs is not None else "",
         )
 
 
@@ -217,6 +225,13 @@ def _zenoh_base(mode: str, tls: TlsFiles | None = None) -> dict[str, Any]:
     }
 
 
+def process_identity(node: str, process: str) -> str:
+    """The identity (certificate common name) of process ``process`` of compute node
+    ``node``: ``<node>.<process>`` (``rap certs`` refuses a model where that is also a
+    node's or an operator's name)."""
+    return f"{node}.{process}"
+
+
 def router_id(system: str, node: str) -> str:
     """The Zenoh id of compute node ``node``'s router: the same at every start, so that a
     router restarted is known again (its neighbours log the link as restored)."""
@@ -231,6 +246,7 @@ def router_config(
     addresses: Mapping[str, str] | None = None,
     listen: Sequence[str] | None = None,
     tls: TlsFiles | None = None,
+    manager: bool = True,
 ) -> dict[str, Any]:
     """The Zenoh config of ``node``'s router, with a fixed id (:func:`router_id`): it
     listens on ``local`` (where the node's clients connect) and the node's ``listen``
@@ -242,7 +258,10 @@ def router_config(
 
     ``tls``: the node's certificate files, required when the model says ``fabric.tls``
     (``ValueError`` without them): the model's ``tcp/`` endpoints (and ``listen``) become
-    ``tls/`` ones, with mutual TLS; ``local`` stays as given."""
+    ``tls/`` ones, with mutual TLS, and ``local`` too (every process presents its own
+    certificate); unless ``fabric.acl`` is false, the router enforces the access
+    control :func:`rap_cli.acl.access_control` derives from the model.
+    ``manager``: an adaptation manager runs beside knowledge (its identity is allowed)."""
     if plan.fabric.tls and tls is None:
         raise ValueError(
             f"compute node {node}: the model says fabric.tls - its router needs its "
@@ -255,7 +274,7 @@ def router_config(
     spec = plan.compute_nodes[node]
     mine = [secure(resolve_endpoint(e, plan, addresses)) for e in spec.listen]
     given = mine if listen is None else [secure(e) for e in listen]
-    binds = list(dict.fromkeys([*local, *given]))
+    binds = list(dict.fromkeys([*(secure(e) for e in local), *given]))
     own = set(binds) | set(mine)
     connect: list[str] = []
     for e in [*spec.connect, *plan.fabric.routers]:
@@ -264,6 +283,10 @@ def router_config(
             connect.append(r)
     conf = _zenoh_base("router", tls if plan.fabric.tls else None)
     conf["id"] = router_id(plan.system, node)
+    if plan.fabric.tls and plan.fabric.acl:
+        from .acl import access_control
+
+        conf["access_control"] = access_control(plan, manager=manager)
     conf["listen"] = {"endpoints": binds}
     # a router keeps trying the routers it connects to: a link cut and restored heals
     conf["connect"] = {
@@ -275,13 +298,26 @@ def router_config(
     return conf
 
 
-def client_config(router: str, tls: TlsFiles | None = None) -> dict[str, Any]:
+def client_config(
+    router: str, tls: TlsFiles | None = None, *, secure: bool = False
+) -> dict[str, Any]:
     """The Zenoh config of the node's other processes: clients of its router (with
-    ``tls``: presenting that certificate, for a ``tls/`` router endpoint)."""
+    ``tls``: presenting that certificate, for a ``tls/`` router endpoint). ``secure``
+    (a node of a model with ``fabric.tls``): the router is reached over mutual TLS and
+    each process presents its own certificate, named by its environment (``RAP_AS``,
+    ``RAP_CERTS``: :func:`rap_sdk.fabric.node_overlay` fills them in)."""
     conf = _zenoh_base("client", tls)
+    if secure and tls is None:
+        link = {k: v for k, v in tls_link(TlsFiles("", "", "")).items() if not _is_file(k)}
+        conf["transport"]["link"]["tls"] = link
+        router = tls_endpoint(router)
     conf["listen"] = {"endpoints": []}
     conf["connect"] = {"endpoints": [router]}
     return conf
+
+
+def _is_file(option: str) -> bool:
+    return option.endswith(("_certificate", "_private_key"))
 
 
 def render_zenoh(conf: Mapping[str, Any], *, title: str) -> str:
@@ -292,8 +328,8 @@ def render_zenoh(conf: Mapping[str, Any], *, title: str) -> str:
     lines = [
         f"// {title}",
         "// Generated by rap from the system model; regenerate rather than edit.",
-        "// TLS and mutual authentication: transport.link.tls (when the model says",
-        "// fabric: {tls: true}; rap certs makes the files); access control: not set yet.",
+        "// TLS and mutual authentication: transport.link.tls; access control: access_control",
+        "// (when the model says fabric: {tls: true}; rap certs makes the certificates).",
         json.dumps(conf, indent=2),
     ]
     return "\n".join(lines) + "\n"
@@ -346,6 +382,8 @@ def node_processes(
     sys_name = system or plan.system
     # RAP_COMPUTE_NODE: each runtime names its compute node in its status replies
     client = {CONFIG_ENV: paths.client_config, NODE_ENV: node}
+    if plan.fabric.tls and paths.certs:
+        client[CERTS_ENV] = paths.certs
     out = [
         ProcessSpec(
             "router",
@@ -398,4 +436,11 @@ def node_processes(
                 a = a.replace(k, v)
             argv.append(a)
         out.append(ProcessSpec(name, "component", tuple(argv), client, comp.doc))
+    if plan.fabric.tls:  # each process presents its own certificate: <node>.<process>
+        out = [
+            p
+            if p.role == "router"
+            else replace(p, env={**p.env, AS_ENV: process_identity(node, p.name)})
+            for p in out
+        ]
     return out

@@ -15,8 +15,12 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import os
 import re
+import select
 import signal
+import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,7 +31,7 @@ import typer
 import zenoh
 from rap_sdk.entry import fail, run_cli, setup_logging
 
-__all__ = ["READY", "cli", "main"]
+__all__ = ["READY", "DenialLog", "cli", "main", "watch_denials"]
 
 READY = "listening on"
 """What the router logs once its listeners are bound (``rap up`` waits for it)."""
@@ -50,8 +54,121 @@ def main(
     """Run a compute node's Zenoh router until SIGTERM or SIGINT."""
     setup_logging(log_level)
     conf = load_config(config)
-    zenoh.try_init_log_from_env()
+    if _json(conf, "access_control/enabled") is True and RUST_LOG not in os.environ:
+        watch_denials()
+        zenoh.init_log_from_env_or(ACL_TRACE)
+    else:
+        zenoh.try_init_log_from_env()
     anyio.run(_serve, conf, str(config))
+
+
+# -- what access control refuses -----------------------------------------------------------
+
+RUST_LOG = "RUST_LOG"
+ACL_TRACE = "warn,zenoh::net::routing::interceptor::access_control=trace"
+"""Zenoh's own log filter with access control on: its checks are traced (only there does
+Zenoh say what it refuses, and from whom); :class:`DenialLog` keeps the refusals."""
+_ANSI = re.compile(r"\x1b\[[0-9;]*m")
+_CHECK = re.compile(
+    r"(?P<cached>Using cached result: )?(?P<zid>[0-9a-f]+)(?: on (?P<link>\S+))?\s+is "
+    r"(?P<verdict>authorized|unauthorized) to (?P<action>.+?) \((?P<flow>ingress|egress)\) "
+    r"on (?P<key>\S+)"
+)
+_CN = re.compile(r"CertCommonName\((?P<cn>[^)]*)\)")
+
+
+@dataclass
+class DenialLog:
+    """Turns Zenoh's access-control trace into one log line per refusal, naming the
+    identity (the certificate's common name) that sent it; repeats of the same refusal
+    are counted and told at most every ``every`` seconds.
+
+    Zenoh checks every kind of message at once for a key a peer declares (a burst of
+    checks on one key, most of them never used): such a burst is not a refusal. A
+    refusal is a check of one message: a cached result, or a lone check."""
+
+    every: float = 10.0
+    burst: float = 0.1
+    """Checks of one peer and key within this many seconds are one burst."""
+    names: dict[str, str] = field(default_factory=dict)
+    """Zenoh id -> identity."""
+    pending: dict[tuple[str, str], tuple[float, set[str], list[tuple[str, str]]]] = field(
+        default_factory=dict
+    )
+    told: dict[tuple[str, str, str], tuple[float, int]] = field(default_factory=dict)
+    refused: int = 0
+
+    def feed(self, line: str, now: float) -> bool:
+        """Take one line of Zenoh's log; False when it is not an access-control check."""
+        m = _CHECK.search(_ANSI.sub("", line))
+        if m is None:
+            return False
+        zid, key, action = m["zid"], m["key"], m["action"]
+        if m["link"]:
+            cn = _CN.search(m["link"])
+            self.names[zid] = cn["cn"] if cn else "unauthenticated"
+        if m["cached"]:
+            if m["verdict"] == "unauthorized":
+                self._refused(zid, action, m["flow"], key, now)
+            return True
+        _at, actions, denied = self.pending.setdefault((zid, key), (now, set(), []))
+        actions.add(action)
+        if m["verdict"] == "unauthorized":
+            denied.append((action, m["flow"]))
+        return True
+
+    def flush(self, now: float) -> None:
+        """Tell the refusals of checks older than a burst."""
+        for (zid, key), (at, actions, denied) in list(self.pending.items()):
+            if now - at < self.burst:
+                continue
+            del self.pending[(zid, key)]
+            if len(actions) < 3:  # not a declaration's burst
+                for action, flow in denied:
+                    self._refused(zid, action, flow, key, now)
+
+    def _refused(self, zid: str, action: str, flow: str, key: str, now: float) -> None:
+        self.refused += 1
+        who = self.names.get(zid, f"zenoh id {zid}")
+        what = (who, action, key)
+        last, count = self.told.get(what, (-self.every, 0))
+        if now - last < self.every:
+            self.told[what] = (last, count + 1)
+            return
+        more = f" ({count} more since the last line)" if count else ""
+        log.warning("refused: %s may not %s (%s) on %s%s", who, action.lower(), flow, key, more)
+        self.told[what] = (now, 0)
+
+
+def watch_denials() -> DenialLog:
+    """Read Zenoh's log (its standard output) in a thread: access-control checks go to
+    a :class:`DenialLog`, anything else on to the real standard output."""
+    denials = DenialLog()
+    read, write = os.pipe()
+    out = os.dup(1)
+    os.dup2(write, 1)
+    os.close(write)
+
+    def pump() -> None:
+        with os.fdopen(read, "rb", buffering=0) as pipe, os.fdopen(out, "wb") as real:
+            buf = b""
+            while True:
+                ready, _, _ = select.select([pipe], [], [], denials.burst)
+                now = time.monotonic()
+                if ready:
+                    chunk = pipe.read(65536)
+                    if not chunk:
+                        return
+                    buf += chunk
+                    *lines, buf = buf.split(b"\n")
+                    for raw in lines:
+                        if not denials.feed(raw.decode("utf-8", "replace"), now):
+                            real.write(raw + b"\n")
+                            real.flush()
+                denials.flush(now)
+
+    threading.Thread(target=pump, name="acl-log", daemon=True).start()
+    return denials
 
 
 def load_config(path: Path) -> zenoh.Config:

@@ -234,9 +234,12 @@ def plan_run(
     runs: list[NodeRun] = []
     metrics = _metrics_ports()
     for node, port in zip(nodes, _free_ports(len(nodes)), strict=True):
-        paths = Paths.local(model, run_dir, node)
-        local = f"tcp/127.0.0.1:{port}"
-        tls = TlsFiles.of(certs, node) if plan.fabric.tls and certs is not None else None
+        secure = plan.fabric.tls and certs is not None
+        paths = Paths.local(model, run_dir, node, certs if secure else None)
+        # with TLS the node's own processes reach their router over it too, each with
+        # its own certificate: that is what the router's access control goes by
+        local = f"{'tls' if secure else 'tcp'}/127.0.0.1:{port}"
+        tls = TlsFiles.of(certs, node) if secure and certs is not None else None
         conf = router_config(plan, node, local=[local], addresses=addresses, tls=tls)
         # one adaptation manager per system, beside knowledge; its dashboard on loopback
         http = metrics("manager") if knowledge_node(plan) == node else None
@@ -258,7 +261,7 @@ def plan_run(
                 paths=paths,
                 local=local,
                 router=conf,
-                client=client_config(local),
+                client=client_config(local, secure=secure),
                 processes=procs,
                 dashboard=f"http://{http}/" if http else "",
             )

@@ -40,6 +40,12 @@ def main(
         typer.Option(help=f"A shipped world ({', '.join(shipped_worlds())}) or a world file."),
     ] = "default",
     system: Annotated[str, typer.Option(help="System name on the fabric.")] = "rap",
+    name: Annotated[
+        str,
+        typer.Option(
+            help="Its node name on the fabric (a system model's component gives its own)."
+        ),
+    ] = "sim_world",
     lockstep: Annotated[
         bool, typer.Option("--lockstep", help="As fast as possible (else real time).")
     ] = False,
@@ -70,6 +76,7 @@ def main(
         config = SimConfig(
             world=world,
             system=system,
+            name=name,
             lockstep=lockstep,
             speed=speed,
             duration=duration,

@@ -39,6 +39,9 @@ class SimConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only
     """A shipped world's name (``corridor``) or the path of a world file."""
     system: str = "rap"
     """System name on the fabric: topics are ``rap/<system>/data/...``."""
+    name: str = "sim_world"
+    """The simulator's node name on the fabric (its liveliness token, admin verbs, trace
+    and log keys): a system model's component that runs it gives its own name."""
     lockstep: bool = False
     """Step as fast as the host allows (deterministic); else real time x ``speed``."""
     speed: float = 1.0
@@ -57,6 +60,10 @@ class SimConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only
             keys.system_pattern(self.system)
         except keys.KeyError_ as exc:
             raise SimConfigError("system", self.system, str(exc)) from None
+        try:
+            keys.alive(self.system, self.name)
+        except keys.KeyError_ as exc:
+            raise SimConfigError("name", self.name, str(exc)) from None
         if not (math.isfinite(self.speed) and 0 < self.speed <= MAX_REALTIME_FACTOR):
             raise SimConfigError(
                 "speed",

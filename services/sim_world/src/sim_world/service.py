@@ -117,8 +117,10 @@ class SimService:
         rerun: RerunLog | None = None,
         sync: CycleTracker | None = None,
         sync_timeout: float = 2.0,
+        name: str = NODE,
     ) -> None:
-        """``on_scan(event, envelope)`` sees each scan published (with ground truth);
+        """``name``: its node name on the fabric. ``on_scan(event, envelope)`` sees each
+        scan published (with ground truth);
         ``on_plan(robot, plan, envelope)`` each plan applied. ``sync``: lockstep with a
         loop (see the module docstring); a cycle not over within ``sync_timeout`` s is
         counted in ``sync.timeouts`` and the simulation goes on.
@@ -141,7 +143,7 @@ class SimService:
         self.on_plan = on_plan
         self.sync = sync
         self.sync_timeout = sync_timeout
-        self.node = Node(NODE)
+        self.node = Node(name)
         for name in sim.robots:
             self._inputs(name)
         self.runtime: NodeRuntime | None = None
@@ -293,6 +295,7 @@ async def open_service(
             on_plan=on_plan,
             rerun=rerun,
             sync_timeout=config.sync_timeout,
+            name=config.name,
         )
         async with anyio.create_task_group() as tg:
             if loop_nodes is not None:

@@ -313,7 +313,7 @@ def zenoh_files(plan: DeploymentPlan, node: str) -> tuple[str, str]:
     )
     router = render_zenoh(conf, title=f"The Zenoh router of compute node {node} (in compose)")
     client = render_zenoh(
-        client_config(f"tcp/{ROUTER_SERVICE}:{ROUTER_PORT}"),
+        client_config(f"tcp/{ROUTER_SERVICE}:{ROUTER_PORT}", secure=plan.fabric.tls),
         title=f"The processes of compute node {node}: clients of its router (RAP_ZENOH_CONFIG)",
     )
     return router, client
@@ -476,6 +476,8 @@ def compose_data(
     """The compose file of compute node ``node`` as data."""
     plan = doc.plan
     paths = container_paths(node, model_file)
+    if plan.fabric.tls:  # every process presents its own certificate (RAP_AS, RAP_CERTS)
+        paths = dataclasses.replace(paths, certs=CERTS_MOUNT)
     processes = node_processes(doc, node, paths=paths)
     names = _service_names(processes)
     redis = _redis(plan)
@@ -498,8 +500,8 @@ def compose_data(
             ports = [item.publish for item in _listens(plan, node) if item.publish]
             if ports:
                 service["ports"] = list(dict.fromkeys(ports))
-            if plan.fabric.tls:  # rap certs MODEL writes <model folder>/certs
-                service["volumes"] = [f"../../certs:{CERTS_MOUNT}:ro"]
+        if plan.fabric.tls:  # rap certs MODEL writes <model folder>/certs
+            service["volumes"] = [*service.get("volumes", []), f"../../certs:{CERTS_MOUNT}:ro"]
         services[names[p.name]] = service
     if redis is not None and redis.node == node:
         services[redis_name] = _redis_service(plan, node, redis)

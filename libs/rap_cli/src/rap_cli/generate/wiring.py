@@ -25,7 +25,16 @@ from rap_schemas.catalog import MESSAGES
 from rap_schemas.model import connections
 from rap_schemas.plan import PortSpec
 
-__all__ = ["Channel", "ComponentWiring", "PortWiring", "Wiring", "clean_key", "generated", "wire"]
+__all__ = [
+    "Channel",
+    "ComponentWiring",
+    "PortWiring",
+    "Wiring",
+    "channels",
+    "clean_key",
+    "generated",
+    "wire",
+]
 
 Family = Literal["data", "event"]
 Role = Literal["input", "output", "proposal", "judged", "approved"]
@@ -120,7 +129,9 @@ class _Groups:
             self.parent[rb] = ra
 
 
-def _channels(plan: DeploymentPlan) -> dict[End, Channel]:
+def channels(plan: DeploymentPlan) -> dict[End, Channel]:
+    """The channel of every port of ``plan``, by ``(component, port)`` (see the module
+    doc): what the generated code and the access-control rules both go by."""
     groups = _Groups()
     for cname, comp in plan.components.items():
         for pname in comp.ports:
@@ -164,7 +175,7 @@ def clean_key(text: str) -> str:
 
 def wire(plan: DeploymentPlan, package: str) -> Wiring:
     """The wiring of the components that ``rap generate`` writes (see the module doc)."""
-    chans = _channels(plan)
+    chans = channels(plan)
     todo = generated(plan, package)
     warnings: list[str] = []
     comps = {name: ComponentWiring(name, spec) for name, spec in todo.items()}

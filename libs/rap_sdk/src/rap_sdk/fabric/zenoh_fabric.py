@@ -25,7 +25,7 @@ import json
 import logging
 import os
 import socket
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from time import monotonic
 from types import TracebackType
 from typing import Any, Literal
@@ -134,10 +134,22 @@ class ZenohConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_on
         return json.dumps(conf)
 
 
-def node_overlay(config: ZenohConfig, text: str, *, source: str = CONFIG_ENV) -> ZenohConfig:
+def node_overlay(
+    config: ZenohConfig,
+    text: str,
+    *,
+    source: str = CONFIG_ENV,
+    env: Mapping[str, str] | None = None,
+) -> ZenohConfig:
     """``config`` with the Zenoh config ``text`` (a JSON object) laid over it: ``mode``,
     ``listen.endpoints`` and ``connect.endpoints`` replace the session's; a client never
-    listens; any other key is merged into ``extra``. Raises :class:`FabricError`."""
+    listens; any other key is merged into ``extra``. Raises :class:`FabricError`.
+
+    A ``transport.link.tls`` section without a certificate of its own (``rap up`` and
+    the compose files write one for every process of a node with ``fabric.tls``) gets
+    this process's identity from ``env`` (default: the environment): ``RAP_CERTS`` the
+    folder ``rap certs`` wrote, ``RAP_AS`` the identity (``<CERTS>/<AS>.pem``, ``.key``,
+    and the CA ``ca.pem``)."""
     body = "\n".join(line for line in text.splitlines() if not line.lstrip().startswith("//"))
     try:
         doc = json.loads(body)
@@ -167,7 +179,48 @@ def node_overlay(config: ZenohConfig, text: str, *, source: str = CONFIG_ENV) ->
     mode = changes.get("mode", config.mode)
     if mode == "client":
         changes["listen"] = []
+    _identity(extra, source, os.environ if env is None else env)
     return msgspec.structs.replace(config, **changes, extra=extra)
+
+
+CERTS_ENV = "RAP_CERTS"
+"""The folder of this process's certificates (``rap certs``): ``ca.pem``, ``<AS>.pem``."""
+AS_ENV = "RAP_AS"
+"""This process's identity: the common name of its certificate."""
+
+
+def _identity(extra: dict[str, Any], source: str, env: Mapping[str, str]) -> None:
+    """Fill the certificate of a TLS section that names none from ``env`` (in place)."""
+    transport = extra.get("transport")
+    link = transport.get("link") if isinstance(transport, dict) else None
+    tls = link.get("tls") if isinstance(link, dict) else None
+    if not isinstance(link, dict) or not isinstance(tls, dict) or "connect_certificate" in tls:
+        return
+    folder, name = env.get(CERTS_ENV, ""), env.get(AS_ENV, "")
+    if not folder or not name:
+        raise FabricError(
+            f"{source}: the router link is TLS and this process has no identity - set "
+            f"{AS_ENV}=<identity> and {CERTS_ENV}=<folder rap certs wrote> (rap up and the "
+            "compose files set them)"
+        )
+    base = os.path.join(folder, name)
+    files = {
+        "root_ca_certificate": tls.get("root_ca_certificate") or os.path.join(folder, "ca.pem"),
+        "connect_certificate": f"{base}.pem",
+        "connect_private_key": f"{base}.key",
+    }
+    link["tls"] = {**tls, **files}
+
+
+def tls_files(config: ZenohConfig) -> list[str]:
+    """The certificate and key files a session of ``config`` presents (none without TLS)."""
+    transport = config.extra.get("transport")
+    link = transport.get("link") if isinstance(transport, dict) else None
+    tls = link.get("tls") if isinstance(link, dict) else None
+    if not isinstance(tls, dict):
+        return []
+    names = ("root_ca_certificate", "connect_certificate", "connect_private_key")
+    return [str(tls[n]) for n in names if isinstance(tls.get(n), str)]
 
 
 def _matching(entity: Any) -> bool:
@@ -302,6 +355,12 @@ class ZenohFabric:
                     "it at a Zenoh config file, or unset it"
                 ) from None
             self.config = node_overlay(self.config, text, source=overlay)
+            for f in tls_files(self.config):
+                if not await anyio.Path(f).is_file():
+                    raise FabricError(
+                        f"{overlay}: {f} is not there - make the certificates with rap "
+                        f"certs MODEL, or fix {CERTS_ENV} and {AS_ENV}"
+                    )
         # A client learns of matching subscribers only after its router answers the
         # publisher's declaration: until then every put goes to the router, which routes
         # it (waiting for the answer would lose the first samples on each new key).
