@@ -27,8 +27,14 @@ from rap_cli.deploy import TlsFiles, client_config, render_zenoh, router_config
 from rap_cli.testing import model_copy
 from rap_schemas import keys, load_plan
 from rap_sdk.errors import FabricError
-from rap_sdk.fabric import QueryRequest, Reply, ZenohConfig, ZenohFabric, node_overlay
-from rap_sdk.fabric.zenoh_fabric import free_port
+from rap_sdk.fabric import (
+    QueryRequest,
+    Reply,
+    ZenohConfig,
+    ZenohFabric,
+    free_port,
+    node_overlay,
+)
 from rap_sdk.testing import OutputLines, stop_process
 
 pytestmark = [pytest.mark.anyio, pytest.mark.zenoh, pytest.mark.timeout(120)]

@@ -52,7 +52,10 @@ REPO = Path(__file__).resolve().parents[1]
 MODEL = REPO / "examples/lidar_occlusion/model.yaml"
 DEFAULT_WORLD = REPO / "services/sim_world/src/sim_world/worlds/default.yaml"
 SYSTEM = "demo"
-SIM_RUN = '    run: ["{python}", "-m", "sim_world", "--system", "{system}", "--world", "default"]\n'
+SIM_RUN = (
+    '    run: ["{python}", "-m", "sim_world", "--system", "{system}", "--world", "default", '
+    '"--name", "robot"]\n'
+)
 SIM_SECONDS = 6.6
 SIM_SPEED = 1.0
 
