@@ -14,7 +14,7 @@ import anyio
 import msgspec
 import pytest
 from adaptation_manager import Manager, Registry, TraceReply
-from rap_schemas import keys
+from rap_schemas import StageTrace, keys
 from rap_schemas.admin import ComponentState
 from rap_sdk import LifecycleError, MemoryFabric, Node, admin, run_nodes
 from rap_sdk.fabric import Fabric
@@ -185,6 +185,29 @@ async def test_bad_samples_are_counted_and_the_manager_carries_on() -> None:
         assert unreadable("log") == 1
         assert unreadable("trust") == 1
         assert unreadable("event") == 1  # the garbage; an Empty new-plan is no proposal
+
+
+async def test_bodies_msgspec_cannot_read_as_text_or_nest_too_deep_are_counted() -> None:
+    # a map key that is not UTF-8 raises UnicodeDecodeError, not a msgspec error; deep
+    # nesting raises RecursionError: both are bad input, counted, never the manager's end
+    async with running() as (h, manager, waiter):
+        reg = manager.registry
+        bodies = (b"\x81\xa4node\xa2\xff\xfe", b"\x91" * 200_000 + b"\xc0")
+        for body in bodies:
+            payload, _ = h.sealer.seal_message(keys.trace(S, "x"), None)
+            env = msgspec.msgpack.decode(payload)
+            env["type"], env["body"] = StageTrace.TYPE, msgspec.Raw(body)
+            await h.publish_raw(keys.trace(S, "x"), msgspec.msgpack.encode(env))
+        await waiter.until(
+            lambda: (
+                reg.metrics.registry.get_sample_value(
+                    "rap_manager_unreadable_samples_total", {"kind": "trace"}
+                )
+                == len(bodies)
+            )
+        )
+        sent = await h.send(keys.data(S, "scan"))
+        await waiter.until(lambda: sent.uid in reg.cycles and reg.cycles[sent.uid].executed)
 
 
 async def test_a_stalled_cycle_is_found_at_its_deadline() -> None:

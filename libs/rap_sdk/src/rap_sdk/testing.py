@@ -28,6 +28,7 @@ import anyio
 import msgspec
 from anyio.abc import TaskGroup
 from rap_schemas import Envelope, Message, Rejection, StageTrace, keys
+from rap_schemas.limits import DECODE_ERRORS
 
 from .envelope import OutgoingEnvelope, Sealer
 from .errors import LifecycleError
@@ -184,7 +185,7 @@ class Harness:
                 kind, name = None, ""
             try:
                 env: Envelope | None = _open(sample.payload)
-            except (msgspec.ValidationError, msgspec.DecodeError):
+            except DECODE_ERRORS:  # recorded as unreadable, whatever the bytes
                 env = None
             self.records.append(Record(sample.key, kind, name, env))
             if self._arrived is not None:

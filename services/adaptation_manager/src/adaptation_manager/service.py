@@ -35,7 +35,7 @@ from rap_schemas import (
     keys,
 )
 from rap_schemas.admin import AdminReply
-from rap_schemas.limits import MAX_SAMPLE_BYTES
+from rap_schemas.limits import DECODE_ERRORS, MAX_SAMPLE_BYTES
 from rap_sdk import admin
 from rap_sdk.envelope import TypedEnvelope, typed_decoder
 from rap_sdk.errors import FabricError, LifecycleError, RapError
@@ -155,7 +155,7 @@ class Manager:
                 continue
             try:
                 handle(sample.key, env)
-            except (msgspec.ValidationError, msgspec.DecodeError) as exc:
+            except DECODE_ERRORS as exc:  # a string not UTF-8, nesting too deep: refused too
                 self.registry.unreadable(
                     _kind(sample.key), sample.key, f"invalid {env.type} body: {exc}"
                 )
@@ -169,7 +169,7 @@ class Manager:
             if len(payload) > MAX_SAMPLE_BYTES:
                 raise ValueError(f"{len(payload)} bytes, over {MAX_SAMPLE_BYTES}")
             return _envelope(payload)
-        except (msgspec.ValidationError, msgspec.DecodeError, ValueError) as exc:
+        except DECODE_ERRORS as exc:
             self.registry.unreadable(_kind(sample.key), sample.key, f"not an envelope: {exc}")
             return None
 
