@@ -146,6 +146,27 @@ async def test_query_reply_local_remote_and_errors(pair: tuple[Any, Any]) -> Non
         assert await asker.query("rap/s/kb/nobody", timeout=1.0) == []
 
 
+async def test_a_query_attachment_reaches_the_queryable_beside_the_payload(
+    pair: tuple[Any, Any],
+) -> None:
+    a, b = pair
+    seen: list[tuple[bytes, bytes]] = []
+
+    async def echo(req: QueryRequest) -> list[Reply]:
+        seen.append((req.payload, req.attachment))
+        return [Reply("rap/s/admin/x/status", req.attachment)]
+
+    a.serve("rap/s/admin/x/*", echo)
+    await b.wait_matched("rap/s/admin/x/status", queryable=True)
+    for asker in (a, b):
+        got = await asker.query("rap/s/admin/x/status", b"body", attachment=b"\x00signed")
+        assert got == [Reply("rap/s/admin/x/status", b"\x00signed")]
+        got = await asker.query("rap/s/admin/*/status", partial=True, attachment=b"w")
+        assert got == [Reply("rap/s/admin/x/status", b"w")]
+        assert await asker.query("rap/s/admin/x/status") == [Reply("rap/s/admin/x/status", b"")]
+    assert seen == [(b"body", b"\x00signed"), (b"", b"w"), (b"", b"")] * 2
+
+
 async def test_a_partial_query_keeps_the_replies_that_came_in_time(
     pair: tuple[Any, Any],
 ) -> None:

@@ -18,6 +18,13 @@ swap      ``ComponentSwap``       ``status`` (the new implementation, state hand
 snapshot  -                     ``snapshot`` (also kept in knowledge)
 restore   ``RestoreRequest``    ``status``
 ========= ===================== =====================================================
+
+A process that has identities (``RAP_CERTS``: the folder ``rap certs`` wrote) takes only
+signed requests: a :class:`SignedRequest` rides along with the query (its attachment),
+made and checked by ``rap_sdk.identity``. ``status`` and ``config`` without values (the
+reads) accept any identity of the system's CA; the other verbs need the role
+``operator``. Every verb, refused ones included, leaves an :class:`AuditRecord` in the
+process's log (logger ``rap.audit``).
 """
 
 from __future__ import annotations
@@ -29,8 +36,10 @@ import msgspec
 
 __all__ = [
     "ADMIN_VERBS",
+    "AUDIT_LOGGER",
     "PAUSE_POLICY",
     "AdminReply",
+    "AuditRecord",
     "ComponentSnapshot",
     "ComponentState",
     "ComponentStatus",
@@ -38,6 +47,7 @@ __all__ = [
     "ConfigRequest",
     "RestartRequest",
     "RestoreRequest",
+    "SignedRequest",
     "SnapshotInfo",
     "snapshot_key",
 ]
@@ -66,6 +76,9 @@ ADMIN_VERBS: Final = (
     "snapshot",
     "restore",
 )
+
+AUDIT_LOGGER: Final = "rap.audit"
+"""The logger of :class:`AuditRecord` lines (each line's message is one, as JSON)."""
 
 PAUSE_POLICY: Final = (
     "paused: no handler runs; what arrives waits in the component's inboxes under their "
@@ -145,6 +158,8 @@ class AdminReply(msgspec.Struct, kw_only=True, omit_defaults=True):
     """What was done, or why it was refused (with the fix)."""
     path: str = ""
     """For a refused config: the ``$.path`` of the bad value."""
+    denied: bool = False
+    """Refused for who asked: not authenticated, or not allowed (``message`` says why)."""
     status: ComponentStatus | None = None
     config: dict[str, Any] | None = None
     snapshot: SnapshotInfo | None = None
@@ -165,3 +180,58 @@ class ComponentSnapshot(msgspec.Struct, kw_only=True, frozen=True):
 def snapshot_key(component: str) -> str:
     """The knowledge key a component's snapshots are kept under."""
     return f"admin/snapshot/{component}"
+
+
+class SignedRequest(msgspec.Struct, kw_only=True, frozen=True):
+    """Who sends a request, and the proof: the sender's certificate and its signature
+    over what it asks. Made and checked by ``rap_sdk.identity``; it travels beside the
+    request (a Zenoh query's attachment, msgpack; the ``auth`` field of an MQTT spec
+    update, JSON), never inside the bytes it signs."""
+
+    cert: str
+    """The signer's certificate, PEM, issued by the system's CA (``rap certs``): its
+    common name is the identity, its organizational unit the role (``operator``,
+    ``router``, ``process``)."""
+    ts: int
+    """When it was signed, UTC ns (taken within a window of the receiver's clock)."""
+    nonce: bytes
+    """16 random bytes: a receiver takes one request with a nonce once."""
+    sig: bytes
+    """ECDSA P-256 with SHA-256 (DER) over the canonical encoding of the target (key or
+    topic), the verb, the request's bytes, ``ts`` and ``nonce``."""
+
+
+class AuditRecord(msgspec.Struct, kw_only=True, omit_defaults=True):
+    """One admin action as the component that got it saw it: who, what, when, and what
+    came of it. Logged on ``rap.audit`` (:data:`AUDIT_LOGGER`), one JSON object as the
+    line's message, so it reaches the process's JSON lines file, the fabric's log stream
+    and Redis like any line (``rap logs --audit`` shows them)."""
+
+    ts: int
+    """When the action ended, UTC ns."""
+    who: str
+    """The authenticated identity (the certificate's common name), or
+    ``unauthenticated``."""
+    role: str = ""
+    """Its role (``operator``, ``router``, ``process``); empty when unauthenticated."""
+    checked: bool = False
+    """Whether the component checks identities (it has ``RAP_CERTS``); false: everyone
+    is let in, as on a single machine without certificates."""
+    verb: str
+    component: str
+    via: str = "fabric"
+    """``fabric`` (an admin query) or ``mqtt`` (the trust checker's spec topic)."""
+    key: str = ""
+    """The key expression or MQTT topic the request came on."""
+    request: str = ""
+    """What was asked, in short (config values, the swap target, a spec's size and hash)."""
+    result: str
+    """``ok``, ``refused`` (not authenticated, or not allowed) or ``error`` (the verb
+    failed or the request was bad)."""
+    reason: str = ""
+    """What was done, or why it was refused or failed."""
+    repeated: int = 0
+    """For a refusal: how many refusals like it (the same component, verb, caller and
+    kind of reason) came since the last record of them and were not recorded one by one
+    (refusals are recorded at most once a second each, so that a flood of bad requests
+    cannot wash the record away)."""

@@ -4,6 +4,7 @@ the test's own. (No tests here.)"""
 from __future__ import annotations
 
 import math
+import os
 import subprocess
 from collections.abc import AsyncIterator, Sequence
 from contextlib import asynccontextmanager
@@ -123,23 +124,61 @@ class RecordingSink:
                 await self._changed.wait()
 
 
+@dataclass(frozen=True)
+class BrokerTls:
+    """The broker's TLS files (PEM); ``require_client``: clients must present a
+    certificate of ``ca``."""
+
+    ca: Path
+    cert: Path
+    key: Path
+    require_client: bool = True
+
+
 class Mosquitto:
     """A mosquitto broker of the test's own on a free loopback port. Its log is read
-    all along (so that the pipe never fills) and kept for failure messages."""
+    all along (so that the pipe never fills) and kept for failure messages. With
+    ``passwords`` (user -> password) anonymous clients are refused and the passwords are
+    hashed into a password file by ``mosquitto_passwd -U``; with ``tls`` the listener
+    is TLS only."""
 
-    def __init__(self, directory: Path, port: int | None = None) -> None:
+    def __init__(
+        self,
+        directory: Path,
+        port: int | None = None,
+        *,
+        passwords: dict[str, str] | None = None,
+        tls: BrokerTls | None = None,
+    ) -> None:
         self.binary = require_binary("mosquitto", hint="apt-get install mosquitto")
         self.port = port or free_port()
         self.conf = directory / "mosquitto.conf"
-        self.conf.write_text(
-            f"listener {self.port} 127.0.0.1\nallow_anonymous true\npersistence false\n"
-            "log_dest stderr\nlog_type all\n",
-            encoding="utf-8",
-        )
+        lines = [f"listener {self.port} 127.0.0.1", "persistence false"]
+        if (passwords or tls) and os.geteuid() == 0:
+            # run as root, mosquitto becomes user 'mosquitto' before it opens the password
+            # file and the certificates, which sit in the test's private folder
+            lines.append("user root")
+        self.password_file: Path | None = None
+        if passwords:
+            require_binary("mosquitto_passwd", hint="apt-get install mosquitto")
+            self.password_file = directory / "mosquitto.passwd"
+            self.password_file.write_text(
+                "".join(f"{user}:{pw}\n" for user, pw in passwords.items()), encoding="utf-8"
+            )
+            lines += ["allow_anonymous false", f"password_file {self.password_file}"]
+        else:
+            lines.append("allow_anonymous true")
+        if tls is not None:
+            lines += [f"cafile {tls.ca}", f"certfile {tls.cert}", f"keyfile {tls.key}"]
+            lines.append(f"require_certificate {'true' if tls.require_client else 'false'}")
+        lines += ["log_dest stderr", "log_type all"]
+        self.conf.write_text("\n".join(lines) + "\n", encoding="utf-8")
         self.log = ""
         self._proc: Process | None = None
 
     async def run(self, *, task_status: TaskStatus[None]) -> None:
+        if self.password_file is not None:
+            await anyio.run_process(["mosquitto_passwd", "-U", str(self.password_file)])
         self._proc = proc = await anyio.open_process(
             [self.binary, "-c", str(self.conf)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT
         )
@@ -166,8 +205,14 @@ class Mosquitto:
 
 
 @asynccontextmanager
-async def mosquitto(directory: Path, port: int | None = None) -> AsyncIterator[Mosquitto]:
-    server = Mosquitto(directory, port)
+async def mosquitto(
+    directory: Path,
+    port: int | None = None,
+    *,
+    passwords: dict[str, str] | None = None,
+    tls: BrokerTls | None = None,
+) -> AsyncIterator[Mosquitto]:
+    server = Mosquitto(directory, port, passwords=passwords, tls=tls)
     async with anyio.create_task_group() as tg:
         try:
             await tg.start(server.run)

@@ -1,13 +1,18 @@
 """``rap status``, ``rap config``, ``rap pause|resume|restart|swap|snapshot|restore``: the
 admin verbs of a running system's components, called over its fabric (rap_sdk.admin)
-from any machine that reaches one of its routers."""
+from any machine that reaches one of its routers.
+
+Each request is signed as the identity ``--as`` (or ``RAP_AS``) names, with its
+certificate in ``--certs`` (or ``RAP_CERTS``, or ``<model folder>/certs``): a component
+whose process has identities refuses unsigned requests, and changes from anyone but an
+operator."""
 
 from __future__ import annotations
 
 import json
 import sys
 import time
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import anyio
 import msgspec
@@ -31,6 +36,9 @@ from .reach import (
     reach_options,
 )
 
+if TYPE_CHECKING:
+    from rap_sdk.identity import Signer
+
 __all__ = ["register"]
 
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print JSON instead of a table.")]
@@ -48,23 +56,29 @@ async def _call(
     verb: str,
     request: msgspec.Struct | None,
     timeout: float,
+    signer: Signer | None,
 ) -> list[AdminReply]:
     from rap_sdk.admin import AdminError, call
 
     async with open_fabric(reach) as fabric:
         try:
-            return await call(fabric, reach.system, component, verb, request, timeout=timeout)
+            return await call(
+                fabric, reach.system, component, verb, request, timeout=timeout, signer=signer
+            )
         except AdminError as exc:
             failed(f"{verb} {component}: {exc}")
 
 
 def _one(
-    reach: Reach, component: str, verb: str, request: msgspec.Struct | None, timeout: float
-) -> AdminReply:
-    """Call ``verb`` on one component; fail clearly when nobody or several answer."""
+    where: Where, component: str, verb: str, request: msgspec.Struct | None, timeout: float
+) -> tuple[Reach, AdminReply]:
+    """Call ``verb`` on one component (signed as ``--as``, when given); fail clearly when
+    nobody or several answer."""
     if component in ("*", "**") or "/" in component:
         usage(f"{component!r}: name one component (rap status lists them)")
-    replies = anyio.run(_call, reach, component, verb, request, timeout)
+    reach = where.resolve()
+    signer = where.signer()
+    replies = anyio.run(_call, reach, component, verb, request, timeout, signer)
     if not replies:
         hint = "is it running? `rap status` lists what answers"
         plan = reach.plan
@@ -87,7 +101,7 @@ def _one(
         )
     if len(replies) > 1:
         failed(f"{len(replies)} components named {component!r} answered; names must be unique")
-    return replies[0]
+    return reach, replies[0]
 
 
 def _report(reply: AdminReply, as_json: bool) -> None:
@@ -182,17 +196,29 @@ def _table(rows: list[ComponentStatus]) -> str:
     )
 
 
-async def _watch(reach: Reach, timeout: float, as_json: bool, interval: float) -> None:
+def _warn_refused(replies: list[AdminReply]) -> None:
+    """Say which components refused to answer and why (they are listed as gone)."""
+    for r in replies:
+        if not r.ok:
+            typer.echo(f"rap: warning: {r.component}: refused: {r.message}", err=True)
+
+
+async def _watch(
+    reach: Reach, timeout: float, as_json: bool, interval: float, signer: Signer | None
+) -> None:
     from rap_sdk.admin import AdminError, call
 
     tty = sys.stdout.isatty()
     async with open_fabric(reach) as fabric:
         while True:
             try:
-                replies = await call(fabric, reach.system, "*", "status", timeout=timeout)
+                replies = await call(
+                    fabric, reach.system, "*", "status", timeout=timeout, signer=signer
+                )
             except AdminError as exc:
                 typer.echo(f"rap: warning: {exc}", err=True)
                 replies = []
+            _warn_refused(replies)
             rows = _rows(reach, replies)
             if as_json:
                 typer.echo(json.dumps([_full(s) for s in rows]))
@@ -225,13 +251,15 @@ def status(
     `rap status -c tcp/192.0.2.5:7447 -s demo --json`
     """
     reach = where.resolve()
+    signer = where.signer()
     if watch:
         try:
-            anyio.run(_watch, reach, timeout, as_json, interval)
+            anyio.run(_watch, reach, timeout, as_json, interval, signer)
         except KeyboardInterrupt:
             raise typer.Exit(OK) from None
         return
-    replies = anyio.run(_call, reach, "*", "status", None, timeout)
+    replies = anyio.run(_call, reach, "*", "status", None, timeout, signer)
+    _warn_refused(replies)
     rows = _rows(reach, replies)
     if as_json:
         typer.echo(json.dumps([_full(s) for s in rows], indent=2))
@@ -281,8 +309,7 @@ def config_get(
 
     Example: `rap config get analysis`
     """
-    reach = where.resolve()
-    reply = _one(reach, component, "config", None, timeout)
+    _, reply = _one(where, component, "config", None, timeout)
     if not reply.ok:
         _report(reply, as_json)
     conf = reply.config
@@ -316,8 +343,7 @@ def config_set(
 
     Example: `rap config set analysis threshold=0.4 window=5`
     """
-    reach = where.resolve()
-    reply = _one(reach, component, "config", ConfigRequest(values=_values(values)), timeout)
+    _, reply = _one(where, component, "config", ConfigRequest(values=_values(values)), timeout)
     _report(reply, as_json)
 
 
@@ -333,8 +359,7 @@ def _simple(verb: str, doc: str, timeout_default: float = 5.0) -> Any:
         *,
         where: Where,
     ) -> None:
-        reach = where.resolve()
-        _report(_one(reach, component, verb, None, timeout), as_json)
+        _report(_one(where, component, verb, None, timeout)[1], as_json)
 
     command.__doc__ = doc
     command.__name__ = verb
@@ -367,8 +392,7 @@ def swap(
     """
     if ":" not in target:
         usage(f"{target!r}: give MODULE:ATTR (e.g. my_robot.analysis_v2:analysis)")
-    reach = where.resolve()
-    _report(_one(reach, component, "swap", ComponentSwap(target=target), timeout), as_json)
+    _report(_one(where, component, "swap", ComponentSwap(target=target), timeout)[1], as_json)
 
 
 @reach_options
@@ -393,9 +417,8 @@ def restart(
 
     Example: `rap restart analysis`, `rap restart analysis --from-snapshot`
     """
-    reach = where.resolve()
     request = RestartRequest(from_snapshot=from_snapshot)
-    _report(_one(reach, component, "restart", request, timeout), as_json)
+    _report(_one(where, component, "restart", request, timeout)[1], as_json)
 
 
 @reach_options
@@ -416,8 +439,7 @@ def restore(
     """
     if version < 0:
         usage(f"--version {version}: give a version >= 0")
-    reach = where.resolve()
-    reply = _one(reach, component, "restore", RestoreRequest(version=version), timeout)
+    _, reply = _one(where, component, "restore", RestoreRequest(version=version), timeout)
     _report(reply, as_json)
 
 

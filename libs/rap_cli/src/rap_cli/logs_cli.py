@@ -4,12 +4,17 @@
     rap logs analysis --level warning --since 10m -m model.yaml
     rap logs --redis redis://127.0.0.1:6379/0 -s demo     # the history in a Redis stream
     rap logs -f -m model.yaml                   # live from the fabric, until Ctrl-C
+    rap logs --audit -m model.yaml              # the admin actions: who did what, and how
 
 Live, every record on ``rap/<system>/log/**`` is shown, decoded by its envelope's type:
 log lines (``rap.LogRecord/1``) and rejections (``rap.Rejection/1``: samples a node
 refused). The history comes from the files ``rap up`` writes
 (``<run-dir>/<node>/logs/<process>.jsonl`` and their rotated ``.jsonl.N``), or from the
 Redis stream ``rap:<system>:log`` that services given ``--log-redis`` write.
+
+``--audit`` keeps only the audit records (logger ``rap.audit``, each line's message an
+``rap_schemas.admin.AuditRecord``): every admin verb and hot swap a component was asked
+for, who asked (or ``unauthenticated``), and whether it was done, refused or failed.
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ import anyio
 import msgspec
 import typer
 from rap_schemas import Envelope, LogRecord, Rejection, keys
+from rap_schemas.admin import AUDIT_LOGGER, AuditRecord
 from rap_schemas.limits import DecodeRejected, SafeDecoder
 
 from .cli import OK, failed, usage
@@ -48,6 +54,7 @@ __all__ = [
     "read_files",
     "register",
     "render",
+    "render_audit",
 ]
 
 LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
@@ -60,6 +67,7 @@ _envelope: SafeDecoder[Envelope] = SafeDecoder(Envelope, what="envelope")
 _log_body: SafeDecoder[LogRecord] = SafeDecoder(LogRecord, what="log record")
 _rejection_body: SafeDecoder[Rejection] = SafeDecoder(Rejection, what="rejection")
 _line = msgspec.json.Decoder(LogRecord)
+_audit = msgspec.json.Decoder(AuditRecord)
 _encode = msgspec.json.Encoder().encode
 
 
@@ -74,6 +82,16 @@ class Entry:
     @property
     def level(self) -> str:
         return self.log.level if self.log is not None else "WARNING"
+
+    @property
+    def audit(self) -> AuditRecord | None:
+        """The audit record this line carries (None: not one)."""
+        if self.log is None or self.log.logger != AUDIT_LOGGER:
+            return None
+        try:
+            return _audit.decode(self.log.message)
+        except msgspec.DecodeError:  # ValidationError is one
+            return None
 
 
 def parse_since(text: str) -> float:
@@ -90,9 +108,13 @@ class Filter:
     level: int = 0
     """Index in :data:`LEVELS` of the lowest level shown."""
     since_ns: int = 0
+    audit: bool = False
+    """Only audit records."""
 
     def __call__(self, e: Entry) -> bool:
         if e.ts < self.since_ns:
+            return False
+        if self.audit and e.audit is None:
             return False
         level = e.level
         if level in LEVELS and LEVELS.index(level) < self.level:
@@ -110,8 +132,30 @@ def _time(ts: int) -> str:
     return t.strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3] + "Z"
 
 
+def render_audit(r: LogRecord, a: AuditRecord) -> str:
+    """An audit record as a readable line: when, the result, who (role), the verb and
+    the component, what was asked, and the reason."""
+    who = a.who + (f" ({a.role})" if a.role else "")
+    where = r.process + (f"@{r.compute_node}" if r.compute_node else "") if r.process else ""
+    text = f"{_time(a.ts)} AUDIT    {a.result.upper():<7} {who}: {a.verb} {a.component}"
+    if a.via != "fabric":
+        text += f" (via {a.via} {a.key})"
+    if a.request:
+        text += f" {a.request}"
+    if a.reason:
+        text += f" - {a.reason}"
+    if not a.checked:
+        text += " [identities not checked]"
+    if where:
+        text += f" [{where}]"
+    return text
+
+
 def render(e: Entry) -> str:
     """One record as a readable line (an exception's text on the lines after it)."""
+    audit = e.audit
+    if audit is not None and e.log is not None:
+        return render_audit(e.log, audit)
     if e.log is not None:
         r = e.log
         who = r.component or r.process or "-"
@@ -129,8 +173,15 @@ def render(e: Entry) -> str:
     return f"{_time(j.ts)} REJECTED {j.node} {j.count} sample(s) on {j.key}: {j.reason}{source}"
 
 
-def as_json(e: Entry) -> str:
-    """One record as JSON: a log line as in the files, a rejection with its ``type``."""
+def as_json(e: Entry, *, audit: bool = False) -> str:
+    """One record as JSON: a log line as in the files, a rejection with its ``type``;
+    with ``audit``, an audit record as its own object (with the line's ``system``,
+    ``compute_node`` and ``process``)."""
+    record = e.audit if audit else None
+    if record is not None and e.log is not None:
+        where = {"system": e.log.system, "compute_node": e.log.compute_node}
+        where["process"] = e.log.process
+        return _encode({**msgspec.to_builtins(record), **where}).decode()
     if e.log is not None:
         return _encode(e.log).decode()
     assert e.rejection is not None
@@ -268,7 +319,7 @@ async def _follow(reach: Reach, keep: Filter, count: int | None, raw: bool) -> i
                     entry = decode_log_sample(sample.payload)
                     if entry is None or not keep(entry):
                         continue
-                    typer.echo(as_json(entry) if raw else render(entry))
+                    typer.echo(as_json(entry, audit=keep.audit) if raw else render(entry))
                     shown += 1
                     if count is not None and shown >= count:
                         break
@@ -329,6 +380,14 @@ def logs_cmd(
             show_default=False,
         ),
     ] = None,
+    audit: Annotated[
+        bool,
+        typer.Option(
+            "--audit",
+            help="Only the audit records: each admin verb and hot swap, who asked, and "
+            "whether it was done, refused or failed.",
+        ),
+    ] = False,
     *,
     where: Where,
 ) -> None:
@@ -339,9 +398,11 @@ def logs_cmd(
     Without `-f`: the history, from the JSON lines files of the model's `rap up` run dir
     (`<run-dir>/<node>/logs/*.jsonl`, rotated files included), or from a Redis stream
     (`--redis`). With `-f`: live from the fabric (`rap/<system>/log/**`), log lines and
-    rejections (samples a node refused, shown as REJECTED).
+    rejections (samples a node refused, shown as REJECTED). Audit records (admin verbs
+    and hot swaps, who asked, the result) show as AUDIT; `--audit` shows only them.
 
-    Example: `rap logs analysis --level warning --since 10m -m model.yaml`"""
+    Example: `rap logs analysis --level warning --since 10m -m model.yaml`;
+    `rap logs --audit --since 1h`"""
     name = level.upper()
     if name not in LEVELS:
         usage(f"--level {level!r} is not a level - use one of {', '.join(LEVELS).lower()}")
@@ -356,7 +417,7 @@ def logs_cmd(
         since_ns = time.time_ns() - int(seconds * 1e9)
     if count is not None and (count < 1 or not follow):
         usage("-n COUNT goes with -f and is a number >= 1")
-    keep = Filter(component, LEVELS.index(name), since_ns)
+    keep = Filter(component, LEVELS.index(name), since_ns, audit)
     if follow:
         if redis_url is not None:
             usage("--redis reads the history; -f follows the fabric - drop one")
@@ -389,11 +450,12 @@ def logs_cmd(
     shown = 0
     for e in entries:
         if keep(e):
-            typer.echo(as_json(e) if raw else render(e))
+            typer.echo(as_json(e, audit=audit) if raw else render(e))
             shown += 1
     if not shown and entries:
         typer.echo(
             f"rap: no record of {len(entries)} in {source} matches"
+            + (" --audit" if audit else "")
             + (f" component {component!r}" if component else "")
             + (f", level {name} or above" if name != LEVELS[0] else "")
             + (" since then" if since_ns else ""),

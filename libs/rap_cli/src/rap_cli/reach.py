@@ -17,6 +17,11 @@ true}``) wants a certificate of the model's CA: ``--as NAME`` (an identity ``rap
 made: one of ``fabric.operators``) and ``--certs DIR`` (default: ``<model
 folder>/certs``), or ``RAP_AS`` and ``RAP_CERTS``. The router of a ``rap up`` on this
 machine is reached on its loopback ``tcp/`` endpoint, without one.
+
+The admin verbs (``rap status``, ``rap pause``, ...) also sign each request as that
+identity whenever one is named, whatever the endpoint (:meth:`Where.signer`): a
+component whose process has identities takes only signed requests, and changes only from
+an operator.
 """
 
 from __future__ import annotations
@@ -37,6 +42,7 @@ from .cli import failed, usage
 if TYPE_CHECKING:
     from rap_schemas import DeploymentPlan
     from rap_sdk import ZenohFabric
+    from rap_sdk.identity import Signer
 
     from .deploy import TlsFiles
 
@@ -56,6 +62,7 @@ __all__ = [
     "open_fabric",
     "reach_options",
     "resolve",
+    "signer_of",
 ]
 
 SYSTEM_ENV = "RAP_SYSTEM"
@@ -158,6 +165,10 @@ class Where:
             certs=self.certs,
             identity=self.identity,
         )
+
+    def signer(self) -> Signer | None:
+        """The identity requests are signed as (see :func:`signer_of`)."""
+        return signer_of(self.model, self.certs, self.identity)
 
 
 _REACH_OPTIONS: tuple[tuple[str, Any], ...] = (
@@ -291,6 +302,26 @@ def _tls(
             "fabric.operators and run rap certs MODEL, or give --certs DIR"
         )
     return files
+
+
+def signer_of(model: Path | None, certs: Path | None, identity: str | None) -> Signer | None:
+    """The identity ``--as`` (else ``RAP_AS``) names, to sign requests with, its files
+    in ``--certs`` (else ``RAP_CERTS``, else ``<model folder>/certs``); None when no
+    identity is named. A usage error says what is missing."""
+    from rap_sdk.identity import IdentityError, load_signer
+
+    name = identity or os.environ.get(AS_ENV)
+    if not name:
+        return None
+    given = certs or (Path(os.environ[CERTS_ENV]) if os.environ.get(CERTS_ENV) else None)
+    file = find_model(model)
+    folder = given or (file.parent / "certs" if file is not None else None)
+    if folder is None:
+        usage(f"--as {name}: where are the certificates? give --certs DIR or set {CERTS_ENV}")
+    try:
+        return load_signer(folder, name)
+    except IdentityError as exc:
+        usage(f"--as {name}: {exc}")
 
 
 @asynccontextmanager

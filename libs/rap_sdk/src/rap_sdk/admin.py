@@ -3,10 +3,22 @@
 Each :class:`~rap_sdk.runtime.NodeRuntime` answers queries on
 ``rap/<system>/admin/<component>/<verb>`` while it runs (``rap_schemas.admin`` lists the
 verbs, their requests and the :class:`~rap_schemas.admin.AdminReply`). Verbs on one
-component run one at a time; each is logged (the audit trail) with what it did.
+component run one at a time.
 
-    replies = await call(fabric, "demo", "monitor", "pause")
+    replies = await call(fabric, "demo", "monitor", "pause", signer=signer)
     replies = await call(fabric, "demo", "*", "status")   # every component
+
+Who may call: a process with identities (``RAP_CERTS`` set, or a ``verifier`` given to
+:func:`serve_admin`) takes only requests signed by a certificate of the system's CA
+(:mod:`rap_sdk.identity`; :func:`call` signs with its ``signer``, the signature riding
+as the query's attachment): the reads (``status``, ``config`` without values) from any
+identity, the other verbs from an ``operator`` only. Anything else is refused with an
+``AdminReply`` saying why. Without identities every request is taken, as before.
+
+The audit trail: every verb, refused ones included, is one
+:class:`~rap_schemas.admin.AuditRecord` logged on ``rap.audit`` (:func:`audit`): who
+(the authenticated identity, or ``unauthenticated``), what, when, and the result;
+changes at INFO, refusals and failures at WARNING, reads that succeed at DEBUG.
 """
 
 from __future__ import annotations
@@ -14,6 +26,7 @@ from __future__ import annotations
 import contextlib
 import importlib
 import logging
+import os
 import re
 import time
 from collections.abc import Iterable
@@ -24,8 +37,10 @@ import msgspec
 from rap_schemas import keys
 from rap_schemas.admin import (
     ADMIN_VERBS,
+    AUDIT_LOGGER,
     PAUSE_POLICY,
     AdminReply,
+    AuditRecord,
     ComponentSnapshot,
     ComponentState,
     ComponentStatus,
@@ -39,22 +54,51 @@ from rap_schemas.admin import (
 
 from .errors import ConfigError, LifecycleError, RapError
 from .fabric import QueryRequest, Reply
+from .identity import (
+    CERTS_ENV,
+    OPERATOR,
+    UNAUTHENTICATED,
+    AuthError,
+    Caller,
+    IdentityError,
+    SignedRequest,
+    Signer,
+    Verifier,
+    require_role,
+    verifier_from_env,
+)
 from .knowledge import KnowledgeClient, KnowledgeError
 from .node import Node
+from .rejections import Throttle
 
 if TYPE_CHECKING:
     from .fabric import Fabric, Queryable
     from .runtime import NodeRuntime
 
-__all__ = ["AdminError", "call", "load_implementation", "resume_from_knowledge", "serve_admin"]
+__all__ = [
+    "AdminError",
+    "Gate",
+    "audit",
+    "call",
+    "is_read",
+    "load_implementation",
+    "resume_from_knowledge",
+    "serve_admin",
+    "summary",
+]
 
 log = logging.getLogger("rap.admin")
+audit_log = logging.getLogger(AUDIT_LOGGER)
 
 _encode = msgspec.json.encode
 _reply_decoder = msgspec.json.Decoder(AdminReply)
 _PATH = re.compile(r"`(\$[^`]*)`")
 MAX_REQUEST = 64 * 1024
 """Bytes an admin request may have."""
+SUMMARY_CHARS = 200
+"""Characters of a request kept in its audit record."""
+REASON_CHARS = 2000
+"""Characters of a reason kept in an audit record."""
 
 
 class AdminError(RapError):
@@ -305,10 +349,143 @@ async def _verb(rt: NodeRuntime, verb: str, payload: bytes) -> AdminReply:
     return _refused(verb, rt, f"unknown verb {verb!r}; the verbs: {', '.join(ADMIN_VERBS)}")
 
 
-def serve_admin(rt: NodeRuntime) -> Queryable:
-    """Answer the admin verbs of ``rt`` on its fabric (NodeRuntime.run calls it)."""
+def is_read(verb: str, payload: bytes) -> bool:
+    """Whether a request only reads (``status``, ``config`` without values): any
+    identity of the system may make it, and it does not wait behind a pause or swap."""
+    if verb == "status":
+        return True
+    if verb != "config" or len(payload) > MAX_REQUEST:
+        return False
+    if not payload.strip(b" \t\r\n{}"):
+        return True
+    try:
+        return not msgspec.json.decode(payload, type=ConfigRequest).values
+    except (msgspec.ValidationError, msgspec.DecodeError):
+        return False
+
+
+def _cut(text: str, limit: int) -> str:
+    return text if len(text) <= limit else text[:limit] + f"... [{len(text) - limit} more]"
+
+
+def summary(payload: bytes) -> str:
+    """A request as its audit record keeps it: its text, cut to :data:`SUMMARY_CHARS`."""
+    text = payload.decode("utf-8", "replace").strip()
+    return "" if text in ("", "{}") else _cut(text, SUMMARY_CHARS)
+
+
+def audit(
+    *,
+    verb: str,
+    component: str,
+    result: str,
+    caller: Caller | None,
+    checked: bool,
+    key: str = "",
+    via: str = "fabric",
+    request: str = "",
+    reason: str = "",
+    read: bool = False,
+    kind: str = "",
+    throttle: Throttle | None = None,
+) -> AuditRecord | None:
+    """Log one admin action as an :class:`~rap_schemas.admin.AuditRecord` on
+    ``rap.audit`` (its message the record as JSON, its component ``component``): at
+    WARNING when ``result`` is not ``ok``, else at DEBUG for a ``read``, INFO otherwise.
+    With a ``throttle`` (a :class:`Gate`'s), refusals are recorded at most once a second
+    per component, verb, caller and ``kind`` (the reason's kind), each record with how
+    many like it came since (``repeated``). Returns the record (None: counted for the
+    next one)."""
+    repeated = 0
+    if result == "refused" and throttle is not None:
+        who = caller.name if caller is not None else ""
+        count = throttle.hit(f"{component}\0{verb}\0{who}\0{kind or reason[:60]}")
+        if not count:
+            return None
+        repeated = count - 1
+    rec = AuditRecord(
+        ts=time.time_ns(),
+        who=caller.name if caller is not None else UNAUTHENTICATED,
+        role=caller.role if caller is not None else "",
+        checked=checked,
+        verb=verb,
+        component=component,
+        via=via,
+        key=key,
+        request=request,
+        result=result,
+        reason=_cut(reason, REASON_CHARS),
+        repeated=repeated,
+    )
+    level = logging.WARNING if result != "ok" else logging.DEBUG if read else logging.INFO
+    if audit_log.isEnabledFor(level):
+        audit_log.log(level, "%s", _encode(rec).decode(), extra={"component": component})
+    return rec
+
+
+class Gate:
+    """Who may call a process's admin verbs (or the trust checker's hot swap): the
+    process's :class:`~rap_sdk.identity.Verifier`, given or taken from ``RAP_CERTS``
+    (read once, in a worker thread, on the first request). Without one every request is
+    let in; with one whose CA cannot be read every request is refused, saying why (a
+    process set up to check identities never falls back to trusting everyone)."""
+
+    def __init__(self, verifier: Verifier | None = None, *, env: bool = True) -> None:
+        self.verifier = verifier
+        self.problem = ""
+        self.refusals = Throttle()
+        """What :func:`audit` records of the refusals (at most one a second of a kind)."""
+        self._loaded = verifier is not None or not env or not os.environ.get(CERTS_ENV)
+
+    @property
+    def checks(self) -> bool:
+        """Whether requests are checked (identities configured, or failing to load)."""
+        return self.verifier is not None or bool(self.problem) or not self._loaded
+
+    async def load(self) -> None:
+        if self._loaded:
+            return
+        try:
+            self.verifier = await anyio.to_thread.run_sync(verifier_from_env)
+        except IdentityError as exc:
+            self.problem = (
+                f"this process cannot check who calls it (${CERTS_ENV}: {exc}); every "
+                "request is refused until it is fixed and the process restarted"
+            )
+            log.error("%s", self.problem)
+        self._loaded = True
+
+    async def check(
+        self,
+        target: str,
+        verb: str,
+        body: bytes,
+        signed: SignedRequest | bytes | None,
+        *,
+        scope: str,
+        what: str,
+    ) -> Caller | None:
+        """The caller of a request (None: nothing is checked here). Raises
+        :class:`~rap_sdk.identity.AuthError` when it is refused; a request that is not
+        :func:`is_read` needs an operator."""
+        await self.load()
+        if self.problem:
+            raise AuthError(self.problem, kind="identities not loadable")
+        if self.verifier is None:
+            return None
+        caller = self.verifier.verify(target, verb, body, signed, scope=scope)
+        if not is_read(verb, body):
+            require_role(caller, OPERATOR, what)
+        return caller
+
+
+def serve_admin(rt: NodeRuntime, *, verifier: Verifier | None = None) -> Queryable:
+    """Answer the admin verbs of ``rt`` on its fabric (NodeRuntime.run calls it).
+    ``verifier``: check who calls with it (default: ``RAP_CERTS``'s CA when the variable
+    is set; else every request is taken)."""
     name = rt.node.name
     pattern = keys.pattern(rt.system, keys.Kind.ADMIN, f"{name}/*")
+    gate = Gate(verifier)
 
     async def handler(req: QueryRequest) -> Iterable[Reply]:
         verb = req.key.rsplit("/", 1)[-1]
@@ -325,7 +502,30 @@ def serve_admin(rt: NodeRuntime) -> Queryable:
             return [Reply(key, _encode(reply))]
         key = keys.admin(rt.system, name, verb)
         # what only reads does not wait behind a pause or swap waiting for a handler
-        reading = verb == "status" or (verb == "config" and not req.payload.strip(b" {}"))
+        reading = is_read(verb, req.payload)
+        checked = gate.checks
+        try:
+            caller = await gate.check(
+                req.key, verb, req.payload, req.attachment, scope=name, what=f"{verb} {name}"
+            )
+        except AuthError as exc:
+            audit(
+                verb=verb,
+                component=name,
+                result="refused",
+                caller=exc.caller,
+                checked=True,
+                key=req.key,
+                request=summary(req.payload),
+                reason=exc.reason,
+                read=reading,
+                kind=exc.kind,
+                throttle=gate.refusals,
+            )
+            denied = AdminReply(
+                ok=False, verb=verb, component=name, message=exc.reason, denied=True
+            )
+            return [Reply(key, _encode(denied))]
         async with contextlib.nullcontext() if reading else rt.admin_lock:
             try:
                 reply = await _verb(rt, verb, req.payload)
@@ -335,13 +535,16 @@ def serve_admin(rt: NodeRuntime) -> Queryable:
                 log.exception("node %s: admin %s failed", name, verb)
                 reply = _refused(verb, rt, f"{type(exc).__name__}: {exc}")
         # the audit trail: what changed a component at INFO, what only read it at DEBUG
-        reads = reading
-        (log.warning if not reply.ok else log.debug if reads else log.info)(
-            "node %s: admin %s %s%s",  # the node first: structured logs name it
-            name,
-            verb,
-            "done" if reply.ok else "refused",
-            f": {reply.message}" if reply.message else "",
+        audit(
+            verb=verb,
+            component=name,
+            result="ok" if reply.ok else "error",
+            caller=caller,
+            checked=checked,
+            key=req.key,
+            request=summary(req.payload),
+            reason=reply.message,
+            read=reading,
         )
         return [Reply(key, _encode(reply))]
 
@@ -356,12 +559,14 @@ async def call(
     request: msgspec.Struct | None = None,
     *,
     timeout: float = 5.0,
+    signer: Signer | None = None,
 ) -> list[AdminReply]:
     """Call ``verb`` on ``component`` (``*``: every component of ``system``) and return
     the replies, sorted by component; an empty list when nobody answered. For one
     component a reply that cannot be read raises :class:`AdminError`; for ``*`` it is
     logged and left out, as are components that do not answer within ``timeout`` (the
-    others' replies are kept)."""
+    others' replies are kept). ``signer``: sign the request as that identity (what a
+    component with identities wants; see the module docstring)."""
     every = component == "*"
     if every:
         selector = keys.pattern(system, keys.Kind.ADMIN, f"*/{verb}")
@@ -369,7 +574,10 @@ async def call(
     else:
         selector = keys.admin(system, component, verb)
     payload = _encode(request) if request is not None else b""
-    replies = await fabric.query(selector, payload, timeout=timeout, partial=every)
+    attachment = signer.attachment(selector, verb, payload) if signer is not None else b""
+    replies = await fabric.query(
+        selector, payload, timeout=timeout, partial=every, attachment=attachment
+    )
     out: list[AdminReply] = []
     for r in replies:
         try:

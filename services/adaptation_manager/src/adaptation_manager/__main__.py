@@ -9,9 +9,10 @@ verdicts, logs), asks each for its status every --status-interval seconds, watch
 components gone or failing, cycles that do not complete within --cycle-timeout seconds
 and trust verdicts false, answers ``rap trace``, and serves the dashboard (the page, a
 WebSocket, /metrics) on --http. Under ``rap up`` it is a Zenoh client of its compute
-node's router (``RAP_ZENOH_CONFIG``). It runs until SIGTERM or SIGINT. A mistake in the
-options is one ``error:`` line and exit code 2; a second manager of the same system
-exits with code 1.
+node's router (``RAP_ZENOH_CONFIG``). With ``RAP_CERTS`` and ``RAP_AS`` set (``rap up``
+with TLS sets them) it signs its admin requests as that identity, as components with
+identities want. It runs until SIGTERM or SIGINT. A mistake in the options is one
+``error:`` line and exit code 2; a second manager of the same system exits with code 1.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import anyio
 import typer
 from rap_sdk import FabricError, LifecycleError, ZenohConfig, ZenohFabric
 from rap_sdk.entry import check_endpoints, check_system, fail, leaf, run_cli, setup_logging
+from rap_sdk.identity import AS_ENV, CERTS_ENV, IdentityError, Signer, signer_from_env
 
 from .dashboard import serve_dashboard
 from .service import Manager
@@ -84,7 +86,13 @@ def main(
         connect=check_endpoints("--connect", connect),
     )
     try:
-        anyio.run(_serve, system, zconf, host, port, status_interval, cycle_timeout, history)
+        signer = signer_from_env()
+    except IdentityError as exc:
+        raise fail(f"${AS_ENV} in ${CERTS_ENV}: {exc}") from None
+    try:
+        anyio.run(
+            _serve, system, zconf, host, port, status_interval, cycle_timeout, history, signer
+        )
     except (FabricError, LifecycleError, OSError, BaseExceptionGroup) as exc:
         inner = leaf(exc)
         if isinstance(inner, LifecycleError):  # another manager of the system runs
@@ -108,13 +116,20 @@ async def _serve(
     status_interval: float,
     cycle_timeout: float,
     history: int,
+    signer: Signer | None = None,
 ) -> None:
     with anyio.open_signal_receiver(signal.SIGTERM, signal.SIGINT) as signals:
         async with ZenohFabric(zconf) as fabric, anyio.create_task_group() as tg:
             registry = Registry(system, history=history, cycle_timeout=cycle_timeout)
             manager = Manager(
-                fabric=fabric, system=system, registry=registry, status_interval=status_interval
+                fabric=fabric,
+                system=system,
+                registry=registry,
+                status_interval=status_interval,
+                signer=signer,
             )
+            if signer is not None:
+                log.info("signing admin requests as %s", signer.caller)
             await tg.start(manager.run)
             url = await tg.start(serve_dashboard, manager, host, port)
             log.info("ready: system %r, dashboard %s (metrics: %smetrics)", system, url, url)

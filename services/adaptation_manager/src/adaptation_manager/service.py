@@ -11,6 +11,12 @@ when one comes alive); it answers ``rap trace`` on ``rap/<system>/admin/manager/
 from its cycle history; it declares the liveliness token ``rap/<system>/alive/manager``
 (and refuses to start when another manager of the system is alive). Its own subscriptions
 never hold a sender back (FIFO inboxes that drop and count when full).
+
+With a ``signer`` (its own identity: ``RAP_CERTS`` and ``RAP_AS`` under ``rap up`` with
+TLS) every admin request it makes is signed, as components with identities want: its
+status polls (any identity may read) and the dashboard's commands (which such a
+component takes only from an operator, so a manager with a process identity has its
+pause, resume and restart refused, saying so on the page).
 """
 
 from __future__ import annotations
@@ -40,6 +46,7 @@ from rap_sdk import admin
 from rap_sdk.envelope import TypedEnvelope, typed_decoder
 from rap_sdk.errors import FabricError, LifecycleError, RapError
 from rap_sdk.fabric import Fabric, QueryRequest, Reply, Sample
+from rap_sdk.identity import Signer
 from rap_sdk.inbox import InboxPolicy, Overflow
 
 from .state import Registry
@@ -89,6 +96,7 @@ class Manager:
         status_timeout: float = 2.0,
         admin_timeout: float = 5.0,
         name: str = MANAGER,
+        signer: Signer | None = None,
     ) -> None:
         keys.system_pattern(system)
         if status_interval <= 0 or status_timeout <= 0 or admin_timeout <= 0:
@@ -102,6 +110,8 @@ class Manager:
         self.status_interval = status_interval
         self.status_timeout = status_timeout
         self.admin_timeout = admin_timeout
+        self.signer = signer
+        """Who its admin requests are signed as (None: unsigned)."""
         self._poke = anyio.Event()
         self._new_due = anyio.Event()
         self.polls = 0
@@ -230,8 +240,12 @@ class Manager:
     async def poll_status(self) -> None:
         """Ask every component of the system for its status (one query)."""
         selector = keys.pattern(self.system, keys.Kind.ADMIN, "*/status")
+        signer = self.signer
+        attachment = signer.attachment(selector, "status", b"") if signer is not None else b""
         try:
-            replies = await self.fabric.query(selector, b"", timeout=self.status_timeout)
+            replies = await self.fabric.query(
+                selector, b"", timeout=self.status_timeout, attachment=attachment
+            )
         except FabricError as exc:
             self.registry.unreadable("admin", selector, f"status query failed: {exc}")
         else:
@@ -251,6 +265,9 @@ class Manager:
                 reply = _reply(r.payload)
             except (msgspec.ValidationError, msgspec.DecodeError) as exc:
                 self.registry.unreadable("admin", r.key, f"not an admin reply: {exc}")
+                continue
+            if not reply.ok:  # a component that refused to tell (who asks, say)
+                self.registry.unreadable("admin", r.key, f"{reply.component}: {reply.message}")
                 continue
             if reply.status is not None:
                 self.registry.status(reply.status)
@@ -297,7 +314,12 @@ class Manager:
             return CommandResult(ok=False, component=component[:200], verb=verb, message=str(exc))
         try:
             replies = await admin.call(
-                self.fabric, self.system, component, verb, timeout=self.admin_timeout
+                self.fabric,
+                self.system,
+                component,
+                verb,
+                timeout=self.admin_timeout,
+                signer=self.signer,
             )
         except RapError as exc:  # AdminError, QueryError, FabricError
             metrics.admin_calls.labels(verb=verb, result="error").inc()

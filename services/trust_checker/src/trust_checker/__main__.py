@@ -4,6 +4,16 @@
     python -m trust_checker spec.dsrv --check                     validate only
     python -m trust_checker spec.dsrv --mqtt 127.0.0.1:1883 [--topics JSON] [--tagged]
     python -m trust_checker spec.dsrv --fabric SYSTEM [--connect EP ...] [--listen EP ...]
+    python -m trust_checker new.dsrv --send-swap --fabric SYSTEM --connect EP --as NAME --certs DIR
+    python -m trust_checker new.dsrv --send-swap --mqtt HOST:PORT --as NAME --certs DIR
+
+MQTT connections take a user name (``--mqtt-user``), a password from an environment
+variable (``--mqtt-password-env VAR``) or a file (``--mqtt-password-file``), never from
+the command line, and TLS (``--mqtt-ca``, and ``--mqtt-cert``/``--mqtt-key`` for a
+broker that wants a client certificate). With identities (``--certs DIR``, default
+``$RAP_CERTS``: the folder ``rap certs`` wrote) the checker takes a new spec, over the
+fabric or MQTT, only when an operator signed it; ``--send-swap`` sends one, signed as
+``--as NAME`` (default ``$RAP_AS``), and prints what the checker answered.
 
 A mistake on the command line or in a file (a bad option value, a bad JSON map, a spec
 or trace file that is missing or not text, a bad endpoint or system name) is one line on
@@ -29,12 +39,12 @@ import sys
 from collections.abc import AsyncIterator
 from functools import partial
 from pathlib import Path
-from typing import Annotated, TypeVar
+from typing import TYPE_CHECKING, Annotated, TypeVar
 
 import anyio
 import typer
-from rap_schemas import keys
-from rap_sdk import FabricError, ZenohConfig, ZenohFabric
+from rap_schemas import TrustSpecStatus, keys
+from rap_sdk import FabricError, RapError, ZenohConfig, ZenohFabric
 from rap_sdk.entry import (
     LogFileOpt,
     LogRedisOpt,
@@ -46,6 +56,7 @@ from rap_sdk.entry import (
     setup_logging,
 )
 from rap_sdk.errors import ConfigError
+from rap_sdk.identity import AS_ENV, CERTS_ENV, IdentityError, load_signer, load_verifier
 from rap_sdk.logs import LogContext, check_redis_url, open_file_log, publish_logs
 from rap_sdk.metrics import TrustCollector, VerdictCounts, check_metrics_option, start_metrics
 
@@ -54,11 +65,15 @@ from .console import ConsoleSink, console_lines, verdict_lines
 from .engine import SpecRunner
 from .errors import EvalError, InputError, SpecError, TextFileError
 from .explain import Explainer, to_message
+from .io.mqtt import mqtt_credentials
 from .io.ports import Sink
 from .lang import load_spec, read_source
 from .lang.ast import Spec
 from .service import TrustService, open_service
 from .tracefile import load_trace
+
+if TYPE_CHECKING:
+    from rap_sdk.identity import Signer, Verifier
 
 __all__ = ["cli", "main"]
 
@@ -68,6 +83,13 @@ T = TypeVar("T")
 log = logging.getLogger(__name__)
 
 _HOW_TO_RUN = "give --input-file FILE, --mqtt HOST:PORT or --fabric SYSTEM"
+_MQTT_OPTIONS = (
+    ("password_env", "--mqtt-password-env"),
+    ("password_file", "--mqtt-password-file"),
+    ("username", "--mqtt-user"),
+    ("cert", "--mqtt-cert"),
+    ("key", "--mqtt-key"),
+)
 
 
 def _mqtt_address(text: str) -> tuple[str, int]:
@@ -138,6 +160,70 @@ def main(
     tick: Annotated[
         str, typer.Option(help="Tick policy: message, or window:<duration> (window:10ms).")
     ] = "message",
+    mqtt_user: Annotated[
+        str, typer.Option("--mqtt-user", metavar="NAME", help="MQTT user name.")
+    ] = "",
+    mqtt_password_env: Annotated[
+        str,
+        typer.Option(
+            "--mqtt-password-env",
+            metavar="VAR",
+            help="The environment variable holding the MQTT password.",
+        ),
+    ] = "",
+    mqtt_password_file: Annotated[
+        str,
+        typer.Option(
+            "--mqtt-password-file",
+            metavar="FILE",
+            help="A file holding the MQTT password (its first line).",
+        ),
+    ] = "",
+    mqtt_tls: Annotated[
+        bool, typer.Option("--mqtt-tls", help="MQTT over TLS (implied by --mqtt-ca).")
+    ] = False,
+    mqtt_ca: Annotated[
+        str,
+        typer.Option(
+            "--mqtt-ca", metavar="PEM", help="The CA the broker's certificate is checked against."
+        ),
+    ] = "",
+    mqtt_cert: Annotated[
+        str,
+        typer.Option("--mqtt-cert", metavar="PEM", help="A client certificate for the broker."),
+    ] = "",
+    mqtt_key: Annotated[
+        str, typer.Option("--mqtt-key", metavar="PEM", help="The client certificate's key.")
+    ] = "",
+    certs: Annotated[
+        Path | None,
+        typer.Option(
+            "--certs",
+            metavar="DIR",
+            envvar=CERTS_ENV,
+            help="The certificates rap certs wrote: take hot swaps only from an operator "
+            f"(default: ${CERTS_ENV}).",
+            show_default=False,
+        ),
+    ] = None,
+    send_swap: Annotated[
+        bool,
+        typer.Option(
+            "--send-swap",
+            help="Send SPEC to a running checker (--fabric SYSTEM --node N, or --mqtt) as "
+            "a hot swap, signed as --as, and print its answer.",
+        ),
+    ] = False,
+    identity: Annotated[
+        str | None,
+        typer.Option(
+            "--as",
+            metavar="NAME",
+            envvar=AS_ENV,
+            help=f"With --send-swap: sign as this operator (default: ${AS_ENV}).",
+            show_default=False,
+        ),
+    ] = None,
     log_level: Annotated[str, typer.Option(help="Logging level.")] = "INFO",
     metrics: MetricsOpt = None,
     log_file: LogFileOpt = None,
@@ -150,17 +236,40 @@ def main(
     metrics = check_metrics_option(metrics)
     log_redis = check_redis_url(log_redis)
     mqtt_cfg = None
+    mqtt_options = (
+        mqtt_user or mqtt_password_env or mqtt_password_file or mqtt_tls,
+        mqtt_ca or mqtt_cert or mqtt_key,
+    )
+    if mqtt is None and any(mqtt_options):
+        raise fail("the --mqtt-* options go with --mqtt HOST:PORT - give it, or drop them")
     if mqtt is not None:
         host, port = _mqtt_address(mqtt)
-        mqtt_cfg = MqttConfig(
-            host=host,
-            port=port,
-            topics=_decode(topics, TopicMap, "--topics") if topics else {},
-            tagged=tagged,
-            spec_topic=spec_topic,
-            status_topic=status_topic,
-            verdict_topic=verdict_topic,
-        )
+        try:
+            mqtt_cfg = MqttConfig(
+                host=host,
+                port=port,
+                topics=_decode(topics, TopicMap, "--topics") if topics else {},
+                tagged=tagged,
+                spec_topic=spec_topic,
+                status_topic=status_topic,
+                verdict_topic=verdict_topic,
+                username=mqtt_user,
+                password_env=mqtt_password_env,
+                password_file=mqtt_password_file,
+                tls=mqtt_tls,
+                ca=mqtt_ca,
+                cert=mqtt_cert,
+                key=mqtt_key,
+            )
+        except ValueError as exc:
+            text = str(exc)
+            for field, option in _MQTT_OPTIONS:
+                text = text.replace(f"({field})", f"({option})")
+            raise fail(text) from None
+        try:
+            mqtt_credentials(mqtt_cfg)  # a missing password or certificate: said now
+        except ConfigError as exc:
+            raise fail(str(exc)) from None
     fabric_cfg = None
     zconf = None
     if fabric is not None:
@@ -174,6 +283,19 @@ def main(
     if input_file is not None and (mqtt_cfg is not None or fabric_cfg is not None):
         raise fail("--input-file runs alone - drop --mqtt and --fabric, or --input-file")
     parsed = _load(spec)
+    if send_swap:
+        if input_file is not None or check:
+            raise fail("--send-swap sends SPEC to a running checker - drop --input-file/--check")
+        if (mqtt_cfg is None) == (fabric_cfg is None):
+            raise fail("--send-swap: give one of --fabric SYSTEM (with --node) or --mqtt HOST:PORT")
+        if fabric_cfg is not None and not connect:
+            raise fail(
+                "--send-swap --fabric: give --connect ENDPOINT (the checker's listen "
+                "endpoint, or a router of the system)"
+            )
+        signer = _signer(certs, identity)
+        code = anyio.run(_send_swap, spec, mqtt_cfg, fabric_cfg, zconf, node, signer)
+        raise typer.Exit(code)
     if check:
         typer.echo(
             f"{spec}: ok (inputs: {', '.join(parsed.inputs) or 'none'}; "
@@ -187,13 +309,14 @@ def main(
         raise fail(f"nothing to run on - {_HOW_TO_RUN}")
     if log_redis is not None and not fabric:
         raise fail("--log-redis names the stream by system - give --fabric SYSTEM too")
+    verifier = _verifier(certs)
     logs = LogContext(system=fabric or "", process=node)
     open_file_log(log_file, logs)
     # uvloop when present, as RAP's other services run: a cheaper wake-up per message
     use_uvloop = importlib.util.find_spec("uvloop") is not None
     try:
         anyio.run(
-            partial(_serve, logs=logs, metrics=metrics, log_redis=log_redis),
+            partial(_serve, logs=logs, metrics=metrics, log_redis=log_redis, verifier=verifier),
             config,
             parsed,
             zconf,
@@ -313,6 +436,7 @@ async def _serve(
     logs: LogContext,
     metrics: str | None = None,
     log_redis: str | None = None,
+    verifier: Verifier | None = None,
 ) -> None:
     sink = ConsoleSink(explain=explain)
     counts = VerdictCounts()
@@ -325,17 +449,118 @@ async def _serve(
     start_metrics(metrics, [collector], what="trust checker")
     with anyio.open_signal_receiver(signal.SIGTERM, signal.SIGINT) as signals:
         if zconf is None:
-            async with open_service(config, spec, sinks=sinks) as service:
+            async with open_service(config, spec, sinks=sinks, verifier=verifier) as service:
                 running.append(service)
                 await _wait_for_signal(signals)
             return
         async with (
             ZenohFabric(zconf) as fabric,
             publish_logs(fabric, logs, node=config.node, redis_url=log_redis),
-            open_service(config, spec, fabric=fabric, sinks=sinks) as service,
+            open_service(config, spec, fabric=fabric, sinks=sinks, verifier=verifier) as service,
         ):
             running.append(service)
             await _wait_for_signal(signals)
+
+
+def _verifier(certs: Path | None) -> Verifier | None:
+    """The CA the checker checks hot swaps against (None: it takes every swap)."""
+    if certs is None:
+        return None
+    try:
+        return load_verifier(certs)
+    except IdentityError as exc:
+        raise fail(f"--certs: {exc}") from None
+
+
+def _signer(certs: Path | None, identity: str | None) -> Signer | None:
+    """Who --send-swap signs as (None: it sends the swap unsigned)."""
+    if identity is None:
+        return None
+    if certs is None:
+        raise fail(
+            f"--as {identity}: where are the certificates? give --certs DIR or set {CERTS_ENV}"
+        )
+    try:
+        return load_signer(certs, identity)
+    except IdentityError as exc:
+        raise fail(f"--as {identity}: {exc}") from None
+
+
+async def _send_swap(
+    spec: Path,
+    mqtt_cfg: MqttConfig | None,
+    fabric_cfg: FabricConfig | None,
+    zconf: ZenohConfig | None,
+    node: str,
+    signer: Signer | None,
+) -> int:
+    """Send the spec in ``spec`` to a running checker; print its answer. 0: swapped;
+    1: refused or not answered."""
+    from .io.auth import fabric_swap, signed_update, update_body
+
+    text = await anyio.to_thread.run_sync(read_source, spec)
+    path = spec.name
+    if fabric_cfg is not None and zconf is not None:
+        key = keys.admin(fabric_cfg.system, node, "swap")
+        conf = ZenohConfig(listen=[], connect=zconf.connect)
+        try:
+            async with ZenohFabric(conf) as fab:
+                await fab.wait_matched(key, queryable=True, timeout=5.0)
+                status = await fabric_swap(fab, key, text, signer=signer, path=path)
+        except RapError as exc:
+            typer.echo(f"error: {exc}", err=True)
+            return 1
+    else:
+        assert mqtt_cfg is not None
+        import aiomqtt
+        import msgspec
+
+        from .io.mqtt import mqtt_credentials as creds_of
+
+        creds = await anyio.to_thread.run_sync(creds_of, mqtt_cfg)
+        topic = mqtt_cfg.spec_topic
+        if signer is not None:
+            payload = signed_update(signer, topic, text, path)
+        else:
+            payload = update_body(text, path)
+        decode = msgspec.json.Decoder(TrustSpecStatus).decode
+        try:
+            async with aiomqtt.Client(
+                mqtt_cfg.host,
+                mqtt_cfg.port,
+                timeout=mqtt_cfg.timeout,
+                username=mqtt_cfg.username or None,
+                password=creds.password,
+                tls_context=creds.tls,
+            ) as client:
+                await client.subscribe(mqtt_cfg.status_topic)
+                await client.publish(topic, payload, qos=1)
+                with anyio.fail_after(10):
+                    async for message in client.messages:
+                        try:
+                            status = decode(bytes(message.payload))
+                        except msgspec.DecodeError:
+                            continue
+                        if status.node == node:
+                            break
+        except (aiomqtt.MqttError, TimeoutError) as exc:
+            what = "no status came within 10 s" if isinstance(exc, TimeoutError) else exc
+            typer.echo(
+                f"error: --mqtt {mqtt_cfg.host}:{mqtt_cfg.port}: {what} - is the checker "
+                f"--node {node} running there, on --spec-topic {topic}?",
+                err=True,
+            )
+            return 1
+    if status.ok:
+        typer.echo(
+            f"{node}: swapped to {path} at tick {status.tick}: inputs "
+            f"{', '.join(status.inputs) or 'none'}; outputs {', '.join(status.outputs) or 'none'}"
+        )
+        return 0
+    for problem in status.problems:
+        typer.echo(problem, err=True)
+    typer.echo(f"error: {node}: the swap was refused; the running spec stays", err=True)
+    return 1
 
 
 async def _wait_for_signal(signals: AsyncIterator[int]) -> None:

@@ -56,6 +56,41 @@ class MqttConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_onl
     """Seconds for connecting, subscribing and each publish."""
     reconnect_max: Annotated[float, msgspec.Meta(gt=0)] = 5.0
     """Longest pause between reconnection attempts (doubling from 0.1 s)."""
+    username: str = ""
+    """The user name given to the broker ("" for none)."""
+    password_env: str = ""
+    """The environment variable holding the password (never the password itself: a
+    config and a command line are seen by others)."""
+    password_file: str = ""
+    """A file holding the password (its first line); read at each connection."""
+    tls: bool = False
+    """Connect over TLS, checking the broker's certificate (against ``ca``, else the
+    system's CAs) and its name. Implied by ``ca``, ``cert`` and ``key``."""
+    ca: str = ""
+    """The CA certificate (PEM) the broker's certificate must be signed by."""
+    cert: str = ""
+    """A client certificate (PEM) to present, for brokers that require one."""
+    key: str = ""
+    """Its private key (PEM, unencrypted)."""
+
+    def __post_init__(self) -> None:
+        if self.password_env and self.password_file:
+            raise ValueError(
+                "give the MQTT password either in an environment variable (password_env) "
+                "or in a file (password_file), not both"
+            )
+        if (self.password_env or self.password_file) and not self.username:
+            raise ValueError("an MQTT password needs a user name (username) too")
+        if bool(self.cert) != bool(self.key):
+            raise ValueError(
+                "an MQTT client certificate needs its key and the key its certificate - "
+                "give both the certificate (cert) and its key (key), or neither"
+            )
+
+    @property
+    def secure(self) -> bool:
+        """Whether the connection is TLS."""
+        return self.tls or bool(self.ca or self.cert)
 
     def topic_of(self, stream: str) -> str:
         m = self.topics.get(stream)

@@ -12,7 +12,9 @@ wired and running for the duration of a block.
 
 On entry every part is ready (the console writer and the session started, MQTT
 connected and subscribed, the fabric subscribed and the swap queryable served); on exit
-all of it stops. ``python -m trust_checker``, bench/trust and the tests all run the
+all of it stops. With identities (``verifier=``, or ``RAP_CERTS`` in the environment) a
+hot swap, over the fabric or MQTT, needs an operator's signature
+(:mod:`trust_checker.io.auth`). ``python -m trust_checker``, bench/trust and the tests all run the
 checker through here.
 """
 
@@ -25,8 +27,10 @@ from dataclasses import dataclass
 
 import anyio
 from rap_sdk import Fabric
+from rap_sdk.admin import Gate
 from rap_sdk.envelope import Clock
 from rap_sdk.errors import ConfigError
+from rap_sdk.identity import Verifier
 
 from .config import ServiceConfig
 from .engine import SpecRunner
@@ -82,6 +86,7 @@ async def open_service(
     sinks: Sequence[Sink] = (),
     loader: SpecLoader = load_text,
     clock: Clock | None = None,
+    verifier: Verifier | None = None,
 ) -> AsyncIterator[TrustService]:
     """Run a checker for the duration of the block (ready on entry).
 
@@ -91,8 +96,10 @@ async def open_service(
     transports do; a sink with a ``run`` task (:class:`~.io.ports.RunningSink`, e.g. the
     console) is started first. ``loader`` parses and checks hot-swapped specs (default:
     :func:`~trust_checker.io.specs.load_text`, which never opens a file); ``clock`` the
-    wall clock of tick times. Raises :class:`rap_sdk.ConfigError` for a mismatch between
-    ``config`` and ``fabric``."""
+    wall clock of tick times. ``verifier``: take hot swaps only from requests an operator
+    of its CA signed (default: ``RAP_CERTS``'s CA when it is set; else every swap is
+    taken). Raises :class:`rap_sdk.ConfigError` for a mismatch between ``config`` and
+    ``fabric``."""
     if config.fabric is not None and fabric is None:
         raise ConfigError(
             f"config.fabric is set (system {config.fabric.system!r}) but no fabric was "
@@ -114,11 +121,14 @@ async def open_service(
         capacity=config.capacity,
         explain=config.verdicts and isinstance(runner, SpecRunner),
     )
+    gate = Gate(verifier)
     try:
-        mqtt = MqttTransport(session, config.mqtt) if config.mqtt is not None else None
+        mqtt = None
+        if config.mqtt is not None:
+            mqtt = MqttTransport(session, config.mqtt, gate=gate)
         fab = None
         if config.fabric is not None and fabric is not None:
-            fab = FabricTransport(session, config.fabric, fabric=fabric)
+            fab = FabricTransport(session, config.fabric, fabric=fabric, gate=gate)
     except BaseException:
         session.discard()
         raise

@@ -122,6 +122,9 @@ class QueryRequest:
     payload: bytes
     arrived: float = 0.0
     """``time.monotonic()`` when the query reached this process (0: unknown)."""
+    attachment: bytes = b""
+    """What the querier attached beside the payload (b"": nothing), e.g. a signature
+    (``rap_sdk.identity``)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -259,10 +262,17 @@ class Fabric(Protocol):
         """Wait until another session has a subscriber (or queryable) matching ``key``."""
 
     async def query(
-        self, selector: str, payload: bytes = b"", *, timeout: float = 2.0, partial: bool = False
+        self,
+        selector: str,
+        payload: bytes = b"",
+        *,
+        timeout: float = 2.0,
+        partial: bool = False,
+        attachment: bytes = b"",
     ) -> list[Reply]:
         """The replies to ``selector``. :class:`QueryError` when they are not all in
-        within ``timeout`` s, unless ``partial``: then the replies that came in time."""
+        within ``timeout`` s, unless ``partial``: then the replies that came in time.
+        ``attachment`` reaches the queryables as ``QueryRequest.attachment``."""
 
     def declare_token(self, key: str) -> Token: ...
 

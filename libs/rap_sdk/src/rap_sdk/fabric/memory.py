@@ -285,6 +285,7 @@ class MemoryFabric:
         *,
         timeout: float = 2.0,
         partial: bool = False,
+        attachment: bytes = b"",
     ) -> list[Reply]:
         self._life.check_open()
         key, _, params = selector.partition("?")
@@ -296,7 +297,7 @@ class MemoryFabric:
                 for q in targets:
                     replies += await answer(
                         q.handler,
-                        QueryRequest(key, params, payload, monotonic()),
+                        QueryRequest(key, params, payload, monotonic(), attachment),
                         self._handler_timeout,
                     )
         except TimeoutError:

@@ -659,7 +659,14 @@ class ZenohFabric:
                 except LifecycleError:
                     return
                 payload = query.payload.to_bytes() if query.payload is not None else b""
-                request = QueryRequest(str(query.key_expr), str(query.parameters), payload, arrived)
+                attached = query.attachment
+                request = QueryRequest(
+                    str(query.key_expr),
+                    str(query.parameters),
+                    payload,
+                    arrived,
+                    attached.to_bytes() if attached is not None else b"",
+                )
                 try:
                     for r in await answer(handler, request, timeout):
                         if r.ok:
@@ -699,6 +706,7 @@ class ZenohFabric:
         *,
         timeout: float = 2.0,
         partial: bool = False,
+        attachment: bytes = b"",
     ) -> list[Reply]:
         self._life.check_open()
         if selector not in self._selectors:
@@ -732,11 +740,15 @@ class ZenohFabric:
                     selector,
                     self._callback(on_reply, on_drop),
                     payload=payload or None,
+                    attachment=attachment or None,
                     consolidation=zenoh.ConsolidationMode.NONE,
                 )
             else:
                 self.session.get(
-                    selector, self._callback(on_reply, on_drop), payload=payload or None
+                    selector,
+                    self._callback(on_reply, on_drop),
+                    payload=payload or None,
+                    attachment=attachment or None,
                 )
         except zenoh.ZError as exc:
             raise FabricError(f"query {selector!r} failed: {exc}") from None

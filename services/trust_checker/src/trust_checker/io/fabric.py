@@ -84,7 +84,11 @@ Hot swap: a queryable on ``rap/<system>/admin/<node>/swap`` (``node``, the sessi
 defaults to ``trust_checker``). The query's payload is a sealed ``rap.TrustSpecUpdate``
 of at most ``MAX_SAMPLE_BYTES``; the reply a sealed ``rap.TrustSpecStatus`` (``ok``, or
 the spec's ``problems``; the old spec keeps running then). A malformed request is
-rejected (counted as above) and gets an error reply saying why.
+rejected (counted as above) and gets an error reply saying why. A checker with
+identities takes the request only with an operator's signature as the query's
+attachment (:func:`trust_checker.io.auth.fabric_swap`); any other gets an error reply
+``swap refused: <why>``, is counted, logged and audited. Every swap leaves an audit record
+(``rap.audit``) with who asked and what came of it.
 """
 
 from __future__ import annotations
@@ -119,14 +123,17 @@ from rap_schemas.limits import (
     decode_failure,
 )
 from rap_sdk import Fabric, InboxPolicy, Opener, Overflow, QueryRequest, RapError, Reply, Sealer
+from rap_sdk.admin import Gate, audit
 from rap_sdk.envelope import TypedEnvelope
 from rap_sdk.errors import QueryError, RejectedSample
 from rap_sdk.fabric import Sample, Subscription
+from rap_sdk.identity import AuthError, Caller
 from rap_sdk.keyexpr import intersects, validate
 from rap_sdk.rejections import Rejections, Throttle
 
 from ..config import FabricConfig
 from ..values import BOTTOM, ValueError_, from_plain, to_plain
+from .auth import SWAP_VERB, outcome, spec_summary
 from .ports import OutputLike
 from .session import Session
 from .ticks import Arrival
@@ -282,10 +289,14 @@ class FabricTransport:
     (:func:`trust_checker.service.open_service` does both). The node id (envelope
     source, admin key) is the session's."""
 
-    def __init__(self, session: Session, config: FabricConfig, *, fabric: Fabric) -> None:
+    def __init__(
+        self, session: Session, config: FabricConfig, *, fabric: Fabric, gate: Gate | None = None
+    ) -> None:
         self.session = session
         self.fabric = fabric
         self.config = config
+        self.gate = gate if gate is not None else Gate()
+        """Who may swap the spec (default: ``RAP_CERTS``'s CA when it is set)."""
         self.node = session.node
         self.stats = FabricTransportStats(
             Rejections(session.node, log, clock=session.clock.time_ns)
@@ -524,11 +535,28 @@ class FabricTransport:
 
     async def _on_swap(self, request: QueryRequest) -> list[Reply]:
         self.stats.swap_queries += 1
+        checked = self.gate.checks
+        try:
+            caller = await self.gate.check(
+                request.key,
+                SWAP_VERB,
+                request.payload,
+                request.attachment,
+                scope=f"{self.node}:fabric",
+                what=f"swap the spec of {self.node}",
+            )
+        except AuthError as exc:
+            reason = f"swap refused: {exc.reason}"
+            self._reject(self.swap_key, f"swap refused: {exc.kind} ({exc.reason})")
+            await self._publish_records()
+            self._audit("refused", exc.reason, request, checked, exc.caller, kind=exc.kind)
+            raise QueryError(reason) from None
         try:
             env = _open_update(request.payload)
         except DecodeRejected as exc:
             self._reject(self.swap_key, exc.reason)
             await self._publish_records()
+            self._audit("error", exc.reason, request, checked, caller)
             raise QueryError(
                 f"swap request refused: {exc.reason} - send a sealed {TrustSpecUpdate.TYPE}"
             ) from None
@@ -536,16 +564,55 @@ class FabricTransport:
             reason = f"swap request: expected type {TrustSpecUpdate.TYPE}, got {env.type!r}"
             self._reject(self.swap_key, reason, source=env.source, type_=env.type)
             await self._publish_records()
+            self._audit("error", reason, request, checked, caller)
             raise QueryError(f"{reason} - send a sealed {TrustSpecUpdate.TYPE}")
         update: TrustSpecUpdate = env.body
-        status = await self.session.request_swap(
-            update.spec,
-            path=update.path,
-            origin=f"{self.swap_key} from {env.source!r}",
-            timeout=SWAP_TIMEOUT,
-        )
+        who = str(caller) if caller is not None else repr(env.source)
+        what = spec_summary(update.spec, update.path)
+        try:
+            status = await self.session.request_swap(
+                update.spec,
+                path=update.path,
+                origin=f"{self.swap_key} from {who}",
+                timeout=SWAP_TIMEOUT,
+            )
+        except TimeoutError:
+            reason = f"the checker did not take the new spec within {SWAP_TIMEOUT:g} s"
+            self._audit("error", reason, request, checked, caller, what)
+            raise QueryError(f"{reason} (it is busy) - ask again") from None
+        result, reason = outcome(status)
+        self._audit(result, reason, request, checked, caller, what)
         payload, _ = self._sealer.seal_message(self.swap_key, status, cause=env.uid)
         return [Reply(self.swap_key, payload)]
+
+    def _audit(
+        self,
+        result: str,
+        reason: str,
+        request: QueryRequest,
+        checked: bool,
+        caller: Caller | None,
+        what: str = "",
+        kind: str = "",
+    ) -> None:
+        if not what:
+            try:
+                update: TrustSpecUpdate = _open_update(request.payload).body
+                what = spec_summary(update.spec, update.path)
+            except DecodeRejected:
+                what = f"{len(request.payload)} bytes"
+        audit(
+            verb=SWAP_VERB,
+            component=self.node,
+            result=result,
+            caller=caller,
+            checked=checked,
+            key=request.key,
+            request=what,
+            reason=reason,
+            kind=kind,
+            throttle=self.gate.refusals,
+        )
 
     # -- the sink --------------------------------------------------------------------
 

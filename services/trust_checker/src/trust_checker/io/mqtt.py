@@ -14,7 +14,14 @@ at most :data:`MAX_SPEC_BYTES`) on ``spec_topic`` (default ``trust/spec``) repla
 running spec between two ticks with the streams' history carried over. The outcome, a
 ``rap.TrustSpecStatus`` as JSON (``{"ok": false, "problems": ["<swap>:2:5: ..."], ...}``),
 is published on ``status_topic`` (default ``trust/status``); a refused spec leaves the old
-one running.
+one running. A checker with identities takes an update only when its ``auth`` field holds
+an operator's signature (:func:`trust_checker.io.auth.signed_update`); any other is
+refused (``"problems": ["swap refused: ..."]``), counted, logged and audited.
+
+The connection: a user name and a password (from an environment variable or a file,
+never from the config or the command line) and TLS (the broker's CA, and a client
+certificate and key for brokers that ask for one), as :class:`MqttConfig` says; the
+password and the certificates are read again at each connection.
 
 Verdicts (a session with ``explain=True``): each ``rap.TrustVerdict`` as JSON on
 ``verdict_topic`` (default ``trust/verdicts``; "" for none), e.g.
@@ -35,35 +42,110 @@ outputs of ticks that happen while disconnected are dropped and counted.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+import os
+import ssl
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
 from typing import Final
 
 import aiomqtt
 import anyio
 import msgspec
 from anyio.abc import TaskStatus
-from rap_schemas import TrustSpecStatus, TrustSpecUpdate, TrustVerdict
+from rap_schemas import TrustSpecStatus, TrustVerdict
 from rap_schemas.limits import MAX_SAMPLE_BYTES, DecodeRejected, SafeDecoder
+from rap_sdk.admin import Gate, audit
+from rap_sdk.errors import ConfigError
+from rap_sdk.identity import AuthError, Caller
 from rap_sdk.rejections import Rejections, Throttle
 
 from ..config import MqttConfig
+from .auth import SWAP_VERB, SignedSpecUpdate, outcome, spec_summary, update_body
 from .codec import CodecError, decode_payload, encode_value
 from .ports import OutputLike
 from .session import Session, SwapRequest
 from .ticks import Arrival
 
-__all__ = ["MAX_SPEC_BYTES", "MqttTransport", "MqttTransportStats"]
+__all__ = [
+    "MAX_SPEC_BYTES",
+    "MqttCredentials",
+    "MqttTransport",
+    "MqttTransportStats",
+    "mqtt_credentials",
+]
 
 log = logging.getLogger(__name__)
 
 MAX_SPEC_BYTES: Final = MAX_SAMPLE_BYTES
 """Largest spec update taken on the spec topic (bytes of JSON)."""
 
-_decode_update: Callable[[bytes], TrustSpecUpdate] = SafeDecoder(
-    TrustSpecUpdate, protocol="json", max_bytes=MAX_SPEC_BYTES, what="spec update"
+_decode_update: Callable[[bytes], SignedSpecUpdate] = SafeDecoder(
+    SignedSpecUpdate, protocol="json", max_bytes=MAX_SPEC_BYTES, what="spec update"
 ).decode
 _encode = msgspec.json.Encoder().encode
+
+
+@dataclass(frozen=True, slots=True)
+class MqttCredentials:
+    """What one connection presents: the password and the TLS context (None: none)."""
+
+    password: str | None = field(default=None, repr=False)
+    tls: ssl.SSLContext | None = None
+
+
+def mqtt_credentials(config: MqttConfig, env: Mapping[str, str] | None = None) -> MqttCredentials:
+    """The password and TLS context ``config`` names, read now (files: call it in a worker
+    thread from an event loop); :class:`rap_sdk.ConfigError` saying what is missing."""
+    password: str | None = None
+    if config.password_env:
+        value = (os.environ if env is None else env).get(config.password_env)
+        if value is None:
+            raise ConfigError(
+                f"MQTT password: ${config.password_env} is not set - export it before "
+                "starting the checker (the password never goes on the command line)"
+            )
+        password = value
+    elif config.password_file:
+        try:
+            text = Path(config.password_file).read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+            raise ConfigError(
+                f"MQTT password file {config.password_file}: cannot read it ({why}) - give "
+                "a readable text file holding the password on its first line"
+            ) from None
+        password = text.splitlines()[0] if text else ""
+        if not password:
+            raise ConfigError(
+                f"MQTT password file {config.password_file}: its first line is empty - "
+                "write the password on it"
+            )
+    context = None
+    if config.secure:
+        try:
+            context = ssl.create_default_context(cafile=config.ca or None)
+            if config.cert:
+                context.load_cert_chain(config.cert, config.key)
+        except OSError as exc:  # ssl.SSLError is one
+            what = "--mqtt-cert/--mqtt-key" if config.cert else "--mqtt-ca"
+            raise ConfigError(
+                f"MQTT TLS: cannot load {config.ca or config.cert or 'the CAs'} "
+                f"({getattr(exc, 'strerror', None) or exc}) - check {what}: PEM files, the "
+                "key unencrypted and the certificate's"
+            ) from None
+    return MqttCredentials(password, context)
+
+
+def _hint(exc: aiomqtt.MqttError) -> str:
+    """A fix for a refused connection, when the error says what it is."""
+    text = str(exc).lower()
+    if "password" in text or "authori" in text:
+        return " - check the user name and the password (--mqtt-user, --mqtt-password-*)"
+    if "certificate" in text or "ssl" in text or "tls" in text:
+        return " - check --mqtt-ca, --mqtt-cert and --mqtt-key, and the broker's name"
+    return ""
 
 
 @dataclass(slots=True)
@@ -81,9 +163,11 @@ class MqttTransport:
     """Feeds ``session`` from MQTT and publishes its results there (it adds itself to
     the session's sinks). Run :meth:`run` in a task group, next to ``session.run``."""
 
-    def __init__(self, session: Session, config: MqttConfig) -> None:
+    def __init__(self, session: Session, config: MqttConfig, *, gate: Gate | None = None) -> None:
         self.session = session
         self.config = config
+        self.gate = gate if gate is not None else Gate()
+        """Who may swap the spec (default: ``RAP_CERTS``'s CA when it is set)."""
         self.stats = MqttTransportStats(Rejections(f"{session.node} (mqtt)", log))
         self._throttle = Throttle()
         self._client: aiomqtt.Client | None = None
@@ -135,8 +219,23 @@ class MqttTransport:
         cfg = self.config
         while True:
             try:
+                creds = await anyio.to_thread.run_sync(mqtt_credentials, cfg)
+            except ConfigError as exc:
+                if not started:
+                    raise
+                log.error("mqtt: %s; retrying in %.1f s", exc, pause)
+                await anyio.sleep(pause)  # pacing: a file to be fixed, no event to wait on
+                pause = min(pause * 2, cfg.reconnect_max)
+                continue
+            try:
                 client = aiomqtt.Client(
-                    cfg.host, cfg.port, identifier=cfg.client_id or None, timeout=cfg.timeout
+                    cfg.host,
+                    cfg.port,
+                    identifier=cfg.client_id or None,
+                    timeout=cfg.timeout,
+                    username=cfg.username or None,
+                    password=creds.password,
+                    tls_context=creds.tls,
                 )
                 async with client:
                     self._subscribed = set()
@@ -144,7 +243,13 @@ class MqttTransport:
                     self._client = client
                     self.stats.connects += 1
                     pause = 0.1
-                    log.info("mqtt: connected to %s:%d", cfg.host, cfg.port)
+                    log.info(
+                        "mqtt: connected to %s:%d%s%s",
+                        cfg.host,
+                        cfg.port,
+                        " over TLS" if creds.tls is not None else "",
+                        f" as {cfg.username}" if cfg.username else "",
+                    )
                     self.connected.set()
                     if not started:
                         started = True
@@ -153,10 +258,11 @@ class MqttTransport:
                         await self._on_message(message)
             except aiomqtt.MqttError as exc:
                 log.warning(
-                    "mqtt: connection to %s:%d lost or refused (%s); retrying in %.1f s",
+                    "mqtt: connection to %s:%d lost or refused (%s%s); retrying in %.1f s",
                     cfg.host,
                     cfg.port,
                     exc,
+                    _hint(exc),
                     pause,
                 )
             finally:
@@ -185,6 +291,7 @@ class MqttTransport:
         )
 
     async def _on_spec(self, topic: str, payload: bytes) -> None:
+        node = self.session.node
         try:
             update = _decode_update(payload)
         except DecodeRejected as exc:
@@ -193,20 +300,83 @@ class MqttTransport:
                 '{"spec": "<spec text>"} as JSON'
             )
             self.stats.rejections.reject(topic, reason)
-            await self.status(
-                TrustSpecStatus(
-                    ok=False,
-                    node=self.session.node,
-                    ts=self.session.clock.time_ns(),
-                    tick=self.session.runner.tick,
-                    problems=[reason],
-                    inputs=list(self.session.runner.inputs),
-                    outputs=list(self.session.runner.outputs),
-                )
+            audit(
+                verb=SWAP_VERB,
+                component=node,
+                result="error",
+                caller=None,
+                checked=self.gate.checks,
+                key=topic,
+                via="mqtt",
+                request=f"{len(payload)} bytes",
+                reason=reason,
             )
+            await self._refuse(reason)
             return
         path = update.path if update.path != "<swap>" else f"<mqtt:{topic}>"
-        await self.session.submit(SwapRequest(update.spec, path, topic))
+        what = spec_summary(update.spec, path)
+        checked = self.gate.checks
+        try:
+            caller = await self.gate.check(
+                topic,
+                SWAP_VERB,
+                update_body(update.spec, update.path),
+                update.auth,
+                scope=f"{node}:mqtt",
+                what=f"swap the spec of {node}",
+            )
+        except AuthError as exc:
+            reason = f"swap refused: {exc.reason}"
+            self.stats.rejections.reject(topic, f"swap refused: {exc.kind} ({exc.reason})")
+            audit(
+                verb=SWAP_VERB,
+                component=node,
+                result="refused",
+                caller=exc.caller,
+                checked=True,
+                key=topic,
+                via="mqtt",
+                request=what,
+                reason=exc.reason,
+                kind=exc.kind,
+                throttle=self.gate.refusals,
+            )
+            await self._refuse(reason)
+            return
+        done = partial(self._audit, caller, checked, topic, what)
+        origin = f"{topic} from {caller}" if caller is not None else topic
+        await self.session.submit(SwapRequest(update.spec, path, origin, on_done=done))
+
+    def _audit(
+        self, caller: Caller | None, checked: bool, topic: str, what: str, st: TrustSpecStatus
+    ) -> None:
+        result, reason = outcome(st)
+        audit(
+            verb=SWAP_VERB,
+            component=self.session.node,
+            result=result,
+            caller=caller,
+            checked=checked,
+            key=topic,
+            via="mqtt",
+            request=what,
+            reason=reason,
+        )
+
+    async def _refuse(self, reason: str) -> None:
+        """Answer a spec update that was not taken on the status topic."""
+        runner = self.session.runner
+        await self.status(
+            TrustSpecStatus(
+                ok=False,
+                node=self.session.node,
+                ts=self.session.clock.time_ns(),
+                tick=runner.tick,
+                problems=[reason],
+                inputs=list(runner.inputs),
+                outputs=list(runner.outputs),
+            )
+        )
 
     # -- the sink --------------------------------------------------------------------
 

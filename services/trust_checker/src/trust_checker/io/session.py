@@ -27,7 +27,7 @@ from __future__ import annotations
 import logging
 import math
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Final
 
@@ -80,6 +80,9 @@ class SwapRequest:
     origin: str = ""
     done: anyio.Event = field(default_factory=anyio.Event)
     result: TrustSpecStatus | None = None
+    on_done: Callable[[TrustSpecStatus], None] | None = None
+    """Called with the outcome, once the swap is done or refused (the audit of a
+    transport that does not wait for it)."""
 
 
 _TIMEOUT: Final = object()
@@ -399,6 +402,11 @@ class Session:
         )
         req.result = status
         req.done.set()
+        if req.on_done is not None:
+            try:
+                req.on_done(status)
+            except Exception:  # a transport's hook: logged, never the end of the session
+                log.exception("the hook of a spec update from %s failed", req.origin or "?")
         for sink in self.sinks:
             await sink.status(status)
 
