@@ -7,10 +7,11 @@ PYTEST_ARGS ?=
 DEMO_ARGS ?=
 EVAL_ARGS ?=
 FUZZ_ARGS ?=
+FAULTS_ARGS ?=
 # third-party AADL / RoboChart designs the importers must read (not part of this repository)
 DESIGN_MODELS ?= $(abspath $(CURDIR)/../shared/models)
 
-.PHONY: help setup sync test acceptance lint format typecheck schemas bench bench-fabric bench-knowledge bench-sim bench-loop bench-fleet bench-trust fuzz demo eval clean
+.PHONY: help setup sync test acceptance lint format typecheck schemas bench bench-fabric bench-knowledge bench-sim bench-loop bench-fleet bench-trust fuzz faults demo eval clean
 
 help:
 	@echo "make demo       run the lidar-occlusion loop end to end (out/demo/summary.json, demo.rrd)"
@@ -23,6 +24,7 @@ help:
 	@echo "make bench      run the benchmarks; results in bench/results and docs/benchmarks.md"
 	@echo "make bench-fleet  50 robots' loops at 5 Hz on this machine (bench/results/fleet.json)"
 	@echo "make fuzz       fuzz every subscriber of a running loop (bench/results/fuzz.json, docs/reliability.md)"
+	@echo "make faults     kill, cut and flood the loop under rap up (~25 min; bench/results/faults.json, docs/reliability.md)"
 	@echo "make wheels    RAP's distributions as wheels in WHEELS_DIR (for the image rap generate describes)"
 
 # Install uv from PyPI when it is missing, then sync the locked workspace.
@@ -83,6 +85,13 @@ bench-fleet: setup
 # (FUZZ_ARGS="--seconds 300 --samples 100000 --seed 1"): bench/results/fuzz.json
 fuzz: setup
 	$(RUN) python -m bench.fuzz $(FUZZ_ARGS)
+
+# Faults injected into the loop under rap up, each bounded in time (~25 min; root for the
+# network namespaces, redis-server for the Redis scenarios): kill -9 of every process, Redis
+# killed, 5 s and 15 s partitions, 1 kHz into a FIFO inbox for 10 min, fuzz over TLS
+# (FAULTS_ARGS="--quick" for a smoke run, "--only kills,redis"): bench/results/faults.json
+faults: setup
+	$(RUN) python -m bench.faults $(FAULTS_ARGS)
 
 # The lidar-occlusion loop end to end (sim_world, knowledge, the runner; loopback Zenoh).
 demo: setup
