@@ -113,19 +113,49 @@ def _cache_file() -> Path:
 
 
 def _pip_commands() -> Iterator[list[str]]:
-    """pip in this Python when it has one, else a pip on PATH (a wheel with no
-    dependencies and no platform: any pip fetches the same file)."""
+    """pip in this Python when it has one, else in the interpreter this virtual
+    environment was made from, else a pip on PATH (a wheel with no dependencies and no
+    platform: any pip fetches the same file, from the indexes its configuration names)."""
     if importlib.util.find_spec("pip") is not None:
         yield [sys.executable, "-m", "pip"]
-    for name in ("python3", "python"):
-        found = shutil.which(name)
-        if found:
+    base = Path(sys.base_prefix) / "bin" / "python3"
+    candidates = [str(base)] if base.is_file() else []
+    candidates += [p for p in (shutil.which("python3"), shutil.which("python")) if p]
+    for found in dict.fromkeys(candidates):
+        if Path(found).resolve() != Path(sys.executable).resolve():
             yield [found, "-m", "pip"]
 
 
+def _from_pypi(into: Path) -> str | None:
+    """The wheel straight from PyPI's simple index (its JSON form, PEP 691), its SHA-256
+    checked: no pip at all, as a fresh virtual environment made by uv has none. The
+    problem, or None."""
+    import hashlib
+    import urllib.request
+
+    name, version = COMPOSE_WHEEL.split("==")
+    url = f"https://pypi.org/simple/{name}/"
+    wanted = f"{name.replace('-', '_')}-{version}-"
+    request = urllib.request.Request(url, headers={"Accept": "application/vnd.pypi.simple.v1+json"})
+    try:
+        with urllib.request.urlopen(request, timeout=60) as res:
+            files = json.loads(res.read())["files"]
+        wheel = next(
+            f for f in files if f["filename"].startswith(wanted) and f["filename"].endswith(".whl")
+        )
+        with urllib.request.urlopen(wheel["url"], timeout=120) as res:
+            data = res.read()
+    except (OSError, ValueError, KeyError, StopIteration) as exc:
+        return f"{url}: {type(exc).__name__}: {exc}"
+    if hashlib.sha256(data).hexdigest() != wheel["hashes"]["sha256"]:
+        return f"{wheel['url']}: the download does not match the index's SHA-256"
+    (into / wheel["filename"]).write_bytes(data)
+    return None
+
+
 def _download_spec(into: Path) -> str | None:
-    """Fetch docker-compose 1.29.2's wheel into ``into``; the problem, or None."""
-    problem = "no pip to download it with"
+    """Fetch docker-compose 1.29.2's wheel into ``into``; the problems, or None."""
+    problems = []
     for pip in _pip_commands():
         argv = [*pip, "download", "--no-deps", "--only-binary=:all:", COMPOSE_WHEEL]
         try:
@@ -137,12 +167,15 @@ def _download_spec(into: Path) -> str | None:
                 check=False,
             )
         except (OSError, subprocess.TimeoutExpired) as exc:
-            problem = f"{' '.join(argv)}: {exc}"
+            problems.append(f"{' '.join(argv)}: {exc}")
             continue
         if done.returncode == 0 and any(into.glob("docker_compose-*.whl")):
             return None
-        problem = f"{' '.join(argv)}: {done.stderr.strip()[-400:] or done.returncode}"
-    return problem
+        problems.append(f"{' '.join(argv)}: {done.stderr.strip()[-400:] or done.returncode}")
+    problem = _from_pypi(into)
+    if problem is None:
+        return None
+    return "; ".join([*problems, problem])
 
 
 def _unavailable(problem: str) -> None:
