@@ -11,7 +11,7 @@ FAULTS_ARGS ?=
 # third-party AADL / RoboChart designs the importers must read (not part of this repository)
 DESIGN_MODELS ?= $(abspath $(CURDIR)/../shared/models)
 
-.PHONY: help setup sync test acceptance lint format typecheck schemas bench bench-fabric bench-knowledge bench-sim bench-loop bench-fleet bench-trust fuzz faults demo eval clean
+.PHONY: help setup sync test acceptance lint format typecheck schemas bench bench-fabric bench-knowledge bench-sim bench-loop bench-fleet bench-trust bench-secure fuzz faults demo eval clean
 
 help:
 	@echo "make demo       run the lidar-occlusion loop end to end (out/demo/summary.json, demo.rrd)"
@@ -23,6 +23,7 @@ help:
 	@echo "make schemas    export JSON Schema of every wire message to schemas/json, and the model reference"
 	@echo "make bench      run the benchmarks; results in bench/results and docs/benchmarks.md"
 	@echo "make bench-fleet  50 robots' loops at 5 Hz on this machine (bench/results/fleet.json)"
+	@echo "make bench-secure  TLS and access control through a router, against plain (bench/results/secure.json)"
 	@echo "make fuzz       fuzz every subscriber of a running loop (bench/results/fuzz.json, docs/reliability.md)"
 	@echo "make faults     kill, cut and flood the loop under rap up (~25 min; bench/results/faults.json, docs/reliability.md)"
 	@echo "make wheels    RAP's distributions as wheels in WHEELS_DIR (for the image rap generate describes)"
@@ -58,7 +59,7 @@ schemas: setup
 
 # Both suites run even if the first misses a budget; make fails if either did.
 bench: setup
-	@rc=0; for b in fabric knowledge sim trust; do $(RUN) python -m bench.$$b || rc=1; done; exit $$rc
+	@rc=0; for b in fabric knowledge sim trust secure; do $(RUN) python -m bench.$$b || rc=1; done; exit $$rc
 
 bench-fabric: setup
 	$(RUN) python -m bench.fabric
@@ -71,6 +72,10 @@ bench-sim: setup
 
 bench-trust: setup
 	$(RUN) python -m bench.trust
+
+# What mutual TLS and the model's access control cost a message through a router (~1 min)
+bench-secure: setup
+	$(RUN) python -m bench.secure
 
 # The loop race against RPIO 0.4.3 (its own venv in bench/.rpio-venv; ~10 min)
 bench-loop: setup
