@@ -1,4 +1,4 @@
-"""``python -m bench.faults [--quick] [--only kills,redis,partition,fifo,fuzz]``: bounded
+"""``python -m bench.faults [--quick] [--only kills,redis,partition,fifo,fuzz,memory]``: bounded
 fault injection into the lidar-occlusion loop run as a user runs it (``rap up``), with
 measured figures against targets.
 
@@ -14,13 +14,17 @@ Scenarios (each in its own module of bench/faults, which says what it does):
 4. ``fifo``: 1 kHz events for 10 minutes into a FIFO inbox: 0 lost, RSS bounded, no
    latency drift;
 5. ``fuzz``: bench/fuzz's 100 000 samples per target over mutual TLS, as an operator:
-   0 crashes, the loop closes afterwards.
+   0 crashes, the loop closes afterwards;
+6. ``memory``: peers that sent 1 MiB samples killed -9 mid-stream, one after the other, 10
+   per router config (Zenoh's defaults, the model's limit, shared memory off, both): a
+   router as rap up configures it keeps at most 2 MiB per disconnected peer.
 
 ``--quick`` (a smoke test) runs each for a few seconds (the FIFO for 10 s, fuzz with 2 000
-samples). Writes ``bench/results/faults.json`` (``--out``) and, on a full run of every
-scenario without ``--no-doc``, the faults section of docs/reliability.md; prints the
-table. Exit codes: 0 every target met; 1 a target missed or a scenario that could not be
-carried out (the report says which and why); 2 bad arguments.
+samples, 3 peers per router config). Writes ``bench/results/faults.json`` (``--out``)
+and, on a full run of every scenario without ``--no-doc``, the faults section of
+docs/reliability.md; prints the table. Exit codes: 0 every target met; 1 a target
+missed or a scenario that could not be carried out (the report says which and why); 2
+bad arguments.
 """
 
 from __future__ import annotations
@@ -43,11 +47,12 @@ from .common import say
 from .fifo import run_fifo
 from .fuzz_tls import run_fuzz_tls
 from .kills import TARGETS, run_kills
+from .memory import run_memory
 from .partition import run_partition
 from .redis_kill import run_redis_kill
 from .report import render, write_doc
 
-SCENARIOS = ("kills", "redis", "partition", "fifo", "fuzz")
+SCENARIOS = ("kills", "redis", "partition", "fifo", "fuzz", "memory")
 OUT = RESULTS / "faults.json"
 
 
@@ -70,6 +75,7 @@ def _scenarios(args: argparse.Namespace) -> dict[str, Callable[[Path], Awaitable
         "fuzz": lambda f: run_fuzz_tls(
             f, samples=args.fuzz_samples, seconds=args.fuzz_seconds, seed=args.seed
         ),
+        "memory": lambda f: run_memory(f, peers=args.memory_peers, settle=1.0 if q else 5.0),
     }
 
 
@@ -135,6 +141,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fifo-seconds", type=float, default=None, help="default 600 (quick: 10)")
     ap.add_argument("--fuzz-samples", type=int, default=None, help="default 100000 (quick: 2000)")
     ap.add_argument("--fuzz-seconds", type=float, default=None, help="default 420 (quick: 10)")
+    ap.add_argument(
+        "--memory-peers",
+        type=int,
+        default=None,
+        help="peers killed per router config (default 10; quick: 3)",
+    )
     ap.add_argument("--seed", type=int, default=1, help="the fuzzer's seed")
     ap.add_argument(
         "--scenario-timeout", type=float, default=1200.0, help="s one scenario may take"
@@ -154,8 +166,12 @@ def main(argv: list[str] | None = None) -> int:
         args.fuzz_samples = 2_000 if q else 100_000
     if args.fuzz_seconds is None:
         args.fuzz_seconds = 10.0 if q else 420.0
+    if args.memory_peers is None:
+        args.memory_peers = 3 if q else 10
     if args.fifo_seconds <= 0 or args.fuzz_samples <= 0 or args.fuzz_seconds <= 0:
         ap.error("--fifo-seconds, --fuzz-samples and --fuzz-seconds must be > 0")
+    if args.memory_peers < 2:
+        ap.error("--memory-peers must be >= 2 (the figure is a slope)")
     hw = hardware()
     say(f"bench/faults on {hardware_line(hw)}: {', '.join(args.only)}{' (quick)' if q else ''}")
     use_uvloop = importlib.util.find_spec("uvloop") is not None
@@ -169,6 +185,7 @@ def main(argv: list[str] | None = None) -> int:
         "fifo_seconds": args.fifo_seconds,
         "fuzz_samples": args.fuzz_samples,
         "fuzz_seconds": args.fuzz_seconds,
+        "memory_peers": args.memory_peers,
         "seed": args.seed,
     }
     text = render(report, hw)

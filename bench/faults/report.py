@@ -140,7 +140,67 @@ def _summary(r: dict[str, Any]) -> list[list[str]]:
                     _ok(x["ok"]),
                 ]
             )
+    if "memory" in sc:
+        x = sc["memory"]
+        if "error" in x:
+            rows.append(["6 peers killed", "-", f"not carried out: {x['error'][:80]}", "FAIL"])
+        else:
+            v = x["variants"]
+
+            def per(name: str) -> str:
+                return _v(v[name]["per_peer_mib"] if name in v else None, " MiB")
+
+            rows.append(
+                [
+                    f"6 {x['peers']} peers x {x['samples_per_peer']} x 1 MiB, killed -9",
+                    f"router keeps <= {x['target_mib_per_peer']:g} MiB per peer gone",
+                    f"{per('rap')} per peer (Zenoh's defaults: {per('zenoh')}; the limit "
+                    f"alone: {per('limit')}; shared memory off alone: {per('no-shm')})",
+                    _ok(x["ok"]),
+                ]
+            )
     return rows
+
+
+def _memory(x: dict[str, Any]) -> list[str]:
+    if "variants" not in x:
+        return []
+    rows = []
+    for name, v in x["variants"].items():
+        rss = v["rss_mib"]
+        rows.append(
+            [
+                f"{name}: {v['what']}",
+                f"{v['message_limit_bytes']:,}",
+                "on" if v["shared_memory"] else "off",
+                f"{rss[0]:g} / {rss[1]:g} / {rss[-1]:g} / {v['end_mib']['rss']:g}",
+                _v(v["per_peer_mib"]),
+                _v(v["per_peer_shmem_mib"]),
+                _v(v["per_peer_anon_mib"]),
+            ]
+        )
+    return [
+        table(
+            [
+                "router config",
+                "link message limit (bytes)",
+                "shared memory",
+                "router RSS MiB: before / 1st peer gone / last gone / "
+                f"{next(iter(x['variants'].values()))['settle_s']:g} s later",
+                "kept per peer gone MiB",
+                "of it shared memory",
+                "of it anonymous",
+            ],
+            rows,
+        ),
+        "",
+        f"Each peer: a client of the router that published {x['samples_per_peer']} "
+        f"samples of {x['sample_bytes']:,} bytes (to a receiver, another client) and got "
+        "SIGKILL while still publishing; the model says max_sample_bytes: "
+        f"{x['max_sample_bytes']:,}. Kept per peer gone: (RSS after the last kill - after "
+        "the first) / (peers - 1).",
+        "",
+    ]
 
 
 def _drift(d: dict[str, Any]) -> str:
@@ -331,6 +391,8 @@ def render(r: dict[str, Any], hw: dict[str, Any]) -> str:
         out += _fifo(sc["fifo"])
     if "fuzz" in sc:
         out += _fuzz(sc["fuzz"])
+    if "memory" in sc:
+        out += _memory(sc["memory"])
     out.append(f"all targets met: {'yes' if r['ok'] else 'NO'}")
     return "\n".join(out)
 

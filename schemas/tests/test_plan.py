@@ -21,6 +21,7 @@ from rap_schemas import (
     parse_plan,
 )
 from rap_schemas.export import PLAN_SCHEMA, render
+from rap_schemas.limits import MAX_MESSAGE_BYTES
 
 GOOD = """\
 system: demo
@@ -166,6 +167,35 @@ def test_whole_file_mistakes(text: str, words: str) -> None:
         parse_plan(text, "p.yaml")
 
 
+def test_the_sample_limit_defaults_to_what_rap_sends_and_takes_a_sane_value() -> None:
+    assert parse_plan(GOOD).plan.fabric.max_sample_bytes == MAX_MESSAGE_BYTES == 257 << 20
+    for value in (65536, 4 << 20, 1 << 30):
+        text = GOOD + f"fabric:\n  max_sample_bytes: {value}\n"
+        assert parse_plan(text).plan.fabric.max_sample_bytes == value
+
+
+@pytest.mark.parametrize(
+    ("value", "words"),
+    [
+        ("1000", ["is 1000: under 65536 (64 KiB)", "give at least 65536"]),
+        ("-1", ["is -1: under 65536", "give at least 65536"]),
+        ("65535", ["is 65535: under 65536", "never reassembled"]),
+        ("1073741825", ["is 1073741825: over 1073741824 (1 GiB", "give at most 1073741824"]),
+        ("4 MiB", ["Expected `int`, got `str`", "$.fabric.max_sample_bytes"]),
+    ],
+)
+def test_a_silly_sample_limit_names_its_line_and_the_fix(value: str, words: list[str]) -> None:
+    text = GOOD + f"fabric:\n  tls: false\n  max_sample_bytes: {value}\n"
+    with pytest.raises(PlanError) as exc:
+        parse_plan(text, "p.yaml")
+    message = str(exc.value)
+    assert message.startswith("p.yaml:22:21: "), message
+    for word in words:
+        assert word in message, message
+    if "Expected" not in message:
+        assert "leave it out for the default 269484032 (257 MiB)" in message
+
+
 def test_a_plan_built_in_code_is_checked_with_paths() -> None:
     plan = DeploymentPlan(
         system="s",
@@ -195,6 +225,8 @@ def test_the_plan_schema_is_exported_with_the_messages() -> None:
     assert "pattern" in plan["properties"]["components"]["propertyNames"]
     module = schema["$defs"]["ComponentSpec"]["properties"]["module"]["anyOf"]
     assert any("pattern" in m for m in module)  # a spec, or null: to generate
+    limit = schema["$defs"]["FabricSpec"]["properties"]["max_sample_bytes"]
+    assert (limit["minimum"], limit["maximum"], limit["default"]) == (65536, 1 << 30, 257 << 20)
 
 
 names = st.text("abcdefghijklmnopqrstuvwxyz0123456789_-.", min_size=1, max_size=8)

@@ -7,6 +7,8 @@ import json
 
 import anyio
 import pytest
+import zenoh
+from rap_schemas.limits import MAX_MESSAGE_BYTES, MESSAGE_HEADROOM
 from rap_sdk import FabricError, ZenohConfig, ZenohFabric
 from rap_sdk.fabric import free_port, node_overlay
 
@@ -31,6 +33,16 @@ async def test_a_client_delivers_the_first_samples_on_each_new_key() -> None:
                 while len(got) < 6:
                     got.append((await sub.get()).key)
     assert sorted(got) == sorted(f"first/key{i}" for i in range(3) for _ in range(2))
+
+
+def test_the_sample_limit_reaches_zenoh() -> None:
+    for conf, limit in [
+        (ZenohConfig(), MAX_MESSAGE_BYTES),
+        (ZenohConfig(max_sample_bytes=1 << 20), 1 << 20),
+    ]:
+        zconf = zenoh.Config.from_json5(conf.to_json5())
+        rx = json.loads(zconf.get_json("transport/link/rx/max_message_size"))
+        assert rx == limit + MESSAGE_HEADROOM
 
 
 def test_the_overlay_makes_a_client_that_never_listens() -> None:

@@ -9,6 +9,10 @@ what                    where                                                  l
 ======================  =====================================================  =========
 fabric sample           one envelope on a subscription (``MAX_SAMPLE_BYTES``;   4 MiB
                         a route or subscription may set its own)
+fabric message          what a Zenoh link reassembles: the model's             257 MiB
+                        ``fabric.max_sample_bytes`` (``MAX_MESSAGE_BYTES``
+                        by default) plus ``MESSAGE_HEADROOM``; a link that
+                        ``rap up`` configures drops a bigger message unread
 knowledge value         one record's value (the service's ``max_value_bytes``)  1 MiB
 untyped nesting         lists and maps inside a value decoded without a type   32 levels
                         (knowledge read without a type, ``Any`` fields, trust
@@ -36,10 +40,12 @@ import msgspec
 __all__ = [
     "DECODE_ERRORS",
     "MAX_DEPTH",
+    "MAX_MESSAGE_BYTES",
     "MAX_SAMPLE_BYTES",
     "MAX_TEXT_BYTES",
     "MAX_YAML_BYTES",
     "MAX_YAML_DEPTH",
+    "MESSAGE_HEADROOM",
     "DecodeRejected",
     "SafeDecoder",
     "check_depth",
@@ -53,6 +59,14 @@ MAX_DEPTH: Final = 32
 MAX_YAML_BYTES: Final = 4 << 20
 MAX_YAML_DEPTH: Final = 64
 MAX_TEXT_BYTES: Final = 64 << 20
+MAX_MESSAGE_BYTES: Final = 257 << 20
+"""The largest payload RAP's own services send in one fabric message: a model-store request
+or reply (a model of the knowledge service's default ``max_model_bytes``, 256 MiB, and
+1 MiB for the rest). The default of the model's ``fabric.max_sample_bytes``."""
+MESSAGE_HEADROOM: Final = 64 << 10
+"""What a fabric message carries beside its payload (key expression, attachment such as a
+signed request with its certificate, Zenoh's headers): Zenoh's link limit
+(``transport.link.rx.max_message_size``) is a payload limit plus this."""
 
 DECODE_ERRORS: Final = (msgspec.MsgspecError, RecursionError, ValueError)
 """What a msgspec decoder may raise on bad input: its own errors, ``RecursionError``

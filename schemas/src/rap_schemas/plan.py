@@ -36,7 +36,7 @@ from typing import Annotated, Any, Literal
 import msgspec
 
 from . import keys
-from .limits import MAX_YAML_BYTES
+from .limits import MAX_MESSAGE_BYTES, MAX_YAML_BYTES
 from .maplek import Stage
 from .yamlconf import (
     Location,
@@ -95,6 +95,18 @@ ModuleSpec = Annotated[
         description="'package.module:attribute' naming a rap_sdk.Node.",
         examples=["lidar_occlusion.nodes:monitor"],
         extra_json_schema={"pattern": f"^{MODULE_SPEC.pattern}$"},
+    ),
+]
+_MIN_SAMPLE_LIMIT = 64 << 10
+"""The least ``fabric.max_sample_bytes``: a message that fits one Zenoh batch (64 KiB) is
+never reassembled, so no link limit applies to it."""
+_MAX_SAMPLE_LIMIT = 1 << 30
+"""The greatest ``fabric.max_sample_bytes``: Zenoh's own default link limit (1 GiB)."""
+_SampleLimit = Annotated[
+    int,
+    msgspec.Meta(
+        description="A size in bytes, from 65536 (64 KiB) to 1073741824 (1 GiB).",
+        extra_json_schema={"minimum": _MIN_SAMPLE_LIMIT, "maximum": _MAX_SAMPLE_LIMIT},
     ),
 ]
 Endpoint = Annotated[
@@ -289,6 +301,24 @@ class FabricSpec(_Plan, frozen=True, kw_only=True):
     process may publish, subscribe, read and write only what the model declares for the
     components it runs; only operators may call admin verbs). `false` leaves any holder of
     a certificate free to do anything."""
+    max_sample_bytes: _SampleLimit = MAX_MESSAGE_BYTES
+    """The largest sample, query or reply payload (in bytes) the system's links must take.
+    The routers and processes `rap up` and `rap generate` configure drop a message over
+    this plus 64 KiB (room for its key, attachment and headers: Zenoh's
+    `transport.link.rx.max_message_size`) before reassembling it, silently: the sender is
+    not told, the receiver logs nothing (Zenoh traces the drop at its `trace` level only)
+    and the link stays up. From 65536 to 1073741824 (Zenoh's own default); by default
+    257 MiB, which the knowledge service's model store needs (256 MiB models). Lower it
+    (e.g. to 4194304, the 4 MiB RAP's subscribers take) when no model is that big: it
+    bounds what one peer can make a router hold while reassembling."""
+    shared_memory: bool = False
+    """Whether processes of one machine may pass samples through Zenoh's shared memory
+    (by reference, for samples over about 3 KiB). Off by default: such a sample escapes
+    `max_sample_bytes`, and a router keeps the shared-memory pool of every peer that
+    sent it one mapped after that peer is gone (about 17 MiB per peer, measured by
+    `make faults`, scenario `memory`). `true` suits large payloads (camera images, point
+    clouds) between trusted processes of one machine: a 1 MiB sample then crosses a
+    router in a fraction of the time, at that memory cost."""
 
 
 class TrustSpec(_Plan, frozen=True, kw_only=True):
@@ -501,6 +531,23 @@ def plan_findings(plan: DeploymentPlan) -> Iterator[Finding]:
                 f"{kb.backend!r}; set backend: {backend} or remove {field}",
                 False,
             )
+    limit = plan.fabric.max_sample_bytes
+    if not _MIN_SAMPLE_LIMIT <= limit <= _MAX_SAMPLE_LIMIT:
+        low = limit < _MIN_SAMPLE_LIMIT
+        yield (
+            ("fabric", "max_sample_bytes"),
+            f"fabric.max_sample_bytes is {limit}: "
+            + (
+                f"under {_MIN_SAMPLE_LIMIT} (64 KiB) it would not hold (a message that fits "
+                "one 64 KiB Zenoh batch is never reassembled, so no limit applies to it); "
+                f"give at least {_MIN_SAMPLE_LIMIT}"
+                if low
+                else f"over {_MAX_SAMPLE_LIMIT} (1 GiB, Zenoh's own default) it would be "
+                f"looser than no limit at all; give at most {_MAX_SAMPLE_LIMIT}"
+            )
+            + f", or leave it out for the default {MAX_MESSAGE_BYTES} (257 MiB)",
+            False,
+        )
     if plan.trust.node is not None and plan.trust.node not in plan.compute_nodes:
         yield (
             ("trust", "node"),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Iterator
 from functools import partial
@@ -10,6 +11,7 @@ import anyio
 import pytest
 from maplek_runner import LoadError, fabric_config, run_plan
 from rap_schemas import LaserScan, keys, pack_ranges, parse_plan
+from rap_schemas.limits import MESSAGE_HEADROOM
 from rap_sdk import NodeGroup, ZenohConfig
 from rap_sdk.testing import Harness
 
@@ -115,3 +117,11 @@ def test_cli_endpoints_replace_the_plans() -> None:
     assert fabric_config(plan, "b") == ZenohConfig()  # the fabric's own default
     with pytest.raises(LoadError, match="compute nodes are: a, b"):
         fabric_config(plan, "c")
+
+
+def test_the_models_sample_limit_reaches_the_session() -> None:
+    plan = parse_plan("system: s\ncompute_nodes: {a: {}}\nfabric: {max_sample_bytes: 65536}\n")
+    conf = fabric_config(plan.plan, "a")
+    assert conf.max_sample_bytes == 65536
+    link = json.loads(conf.to_json5())["transport"]["link"]
+    assert link["rx"]["max_message_size"] == 65536 + MESSAGE_HEADROOM

@@ -22,6 +22,12 @@ each router presents its compute node's certificate (``rap certs``) and accepts 
 peers whose certificate the model's CA signed. A node's own clients reach its router on
 a loopback ``tcp/`` endpoint (that link never leaves the machine).
 
+Every link of a config written here drops a message over the model's
+``fabric.max_sample_bytes`` (plus ``rap_schemas.limits.MESSAGE_HEADROOM``) before
+reassembling it, and uses no Zenoh shared memory unless ``fabric.shared_memory`` (through
+which a message would escape that limit, and which a router keeps mapped for peers that
+are gone).
+
 Knowledge runs on ``knowledge.node`` (the first compute node when none is named), the
 trust checker on ``trust.node`` (one process per spec), the runner on every node that has
 components with a ``module:``, and each component with ``run:`` as its own process.
@@ -37,6 +43,7 @@ from pathlib import Path, PurePosixPath
 from typing import Any, Literal
 
 from rap_schemas import DeploymentPlan, PlanDocument
+from rap_schemas.limits import MAX_MESSAGE_BYTES, MESSAGE_HEADROOM
 
 __all__ = [
     "CONFIG_ENV",
@@ -214,14 +221,28 @@ def tls_link(files: TlsFiles) -> dict[str, Any]:
     }
 
 
-def _zenoh_base(mode: str, tls: TlsFiles | None = None) -> dict[str, Any]:
-    link: dict[str, Any] = {"tx": {"lease": 3000, "keep_alive": 4}}
+def _zenoh_base(
+    mode: str,
+    tls: TlsFiles | None = None,
+    max_sample_bytes: int = MAX_MESSAGE_BYTES,
+    shared_memory: bool = False,
+) -> dict[str, Any]:
+    """What every config RAP writes says: no scouting, a 3 s lease, a message over
+    ``max_sample_bytes`` plus ``MESSAGE_HEADROOM`` dropped by the link that receives it,
+    and no shared memory unless ``shared_memory`` (the model's ``fabric.shared_memory``):
+    a message Zenoh passes through shared memory escapes that limit, and a router keeps
+    the pool of every peer that sent it one mapped after the peer is gone
+    (bench/faults/memory.py measures it)."""
+    link: dict[str, Any] = {
+        "tx": {"lease": 3000, "keep_alive": 4},
+        "rx": {"max_message_size": max_sample_bytes + MESSAGE_HEADROOM},
+    }
     if tls is not None:
         link["tls"] = tls_link(tls)
     return {
         "mode": mode,
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
-        "transport": {"link": link},
+        "transport": {"link": link, "shared_memory": {"enabled": shared_memory}},
     }
 
 
@@ -261,7 +282,9 @@ def router_config(
     ``tls/`` ones, with mutual TLS, and ``local`` too (every process presents its own
     certificate); unless ``fabric.acl`` is false, the router enforces the access
     control :func:`rap_cli.acl.access_control` derives from the model.
-    ``manager``: an adaptation manager runs beside knowledge (its identity is allowed)."""
+    ``manager``: an adaptation manager runs beside knowledge (its identity is allowed).
+    Its links drop a message over the model's ``fabric.max_sample_bytes`` (plus
+    ``MESSAGE_HEADROOM``) and use shared memory only if ``fabric.shared_memory``."""
     if plan.fabric.tls and tls is None:
         raise ValueError(
             f"compute node {node}: the model says fabric.tls - its router needs its "
@@ -281,7 +304,10 @@ def router_config(
         r = secure(resolve_endpoint(e, plan, addresses))
         if r not in own and r not in connect and e not in spec.listen:
             connect.append(r)
-    conf = _zenoh_base("router", tls if plan.fabric.tls else None)
+    fabric = plan.fabric
+    conf = _zenoh_base(
+        "router", tls if fabric.tls else None, fabric.max_sample_bytes, fabric.shared_memory
+    )
     conf["id"] = router_id(plan.system, node)
     if plan.fabric.tls and plan.fabric.acl:
         from .acl import access_control
@@ -299,14 +325,22 @@ def router_config(
 
 
 def client_config(
-    router: str, tls: TlsFiles | None = None, *, secure: bool = False
+    router: str,
+    tls: TlsFiles | None = None,
+    *,
+    secure: bool = False,
+    max_sample_bytes: int = MAX_MESSAGE_BYTES,
+    shared_memory: bool = False,
 ) -> dict[str, Any]:
     """The Zenoh config of the node's other processes: clients of its router (with
     ``tls``: presenting that certificate, for a ``tls/`` router endpoint). ``secure``
     (a node of a model with ``fabric.tls``): the router is reached over mutual TLS and
     each process presents its own certificate, named by its environment (``RAP_AS``,
-    ``RAP_CERTS``: :func:`rap_sdk.fabric.node_overlay` fills them in)."""
-    conf = _zenoh_base("client", tls)
+    ``RAP_CERTS``: :func:`rap_sdk.fabric.node_overlay` fills them in).
+    ``max_sample_bytes``: the model's ``fabric.max_sample_bytes`` (a message from the
+    router over it plus ``MESSAGE_HEADROOM`` is dropped); ``shared_memory``: the model's
+    ``fabric.shared_memory``."""
+    conf = _zenoh_base("client", tls, max_sample_bytes, shared_memory)
     if secure and tls is None:
         link = {k: v for k, v in tls_link(TlsFiles("", "", "")).items() if not _is_file(k)}
         conf["transport"]["link"]["tls"] = link

@@ -52,6 +52,7 @@ def main(
     log_level: Annotated[str, typer.Option(help="Logging level.")] = "INFO",
 ) -> None:
     """Run a compute node's Zenoh router until SIGTERM or SIGINT."""
+    _own_runtime()
     setup_logging(log_level)
     conf = load_config(config)
     if _json(conf, "access_control/enabled") is True and RUST_LOG not in os.environ:
@@ -60,6 +61,22 @@ def main(
     else:
         zenoh.try_init_log_from_env()
     anyio.run(_serve, conf, str(config))
+
+
+_RUNTIME_ENV = "ZENOH_RUNTIME"
+
+
+def _own_runtime() -> None:
+    """Give the router Zenoh's own thread pools, not the one-thread runtime of RAP's other
+    processes (``rap_sdk.ZenohConfig.runtime``), which a router started by one of them
+    inherits (``ZENOH_RUNTIME``). A router forwards on the thread that reads a link; with
+    that one thread also sending, nothing drains a link's send queue while it forwards a
+    message bigger than the queue (256 KiB is): the message is dropped, or, with
+    congestion control ``block``, the link stalls. Another runtime set there is kept."""
+    from rap_sdk.fabric import ZenohConfig
+
+    if os.environ.get(_RUNTIME_ENV) == ZenohConfig().runtime:
+        del os.environ[_RUNTIME_ENV]
 
 
 # -- what access control refuses -----------------------------------------------------------

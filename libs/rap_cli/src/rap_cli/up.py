@@ -261,7 +261,12 @@ def plan_run(
                 paths=paths,
                 local=local,
                 router=conf,
-                client=client_config(local, secure=secure),
+                client=client_config(
+                    local,
+                    secure=secure,
+                    max_sample_bytes=plan.fabric.max_sample_bytes,
+                    shared_memory=plan.fabric.shared_memory,
+                ),
                 processes=procs,
                 dashboard=f"http://{http}/" if http else "",
             )

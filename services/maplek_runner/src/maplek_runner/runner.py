@@ -34,7 +34,8 @@ def fabric_config(
 ) -> ZenohConfig:
     """The Zenoh config of ``compute_node``: the plan's endpoints, each list replaced by
     ``listen`` / ``connect`` when given (non-empty). No listen endpoint at all: the
-    fabric's default (loopback, a free port)."""
+    fabric's default (loopback, a free port). Its links drop a message over the model's
+    ``fabric.max_sample_bytes``."""
     node = plan.compute_nodes.get(compute_node)
     if node is None:
         raise LoadError(
@@ -43,9 +44,10 @@ def fabric_config(
         )
     listen_on = list(listen or node.listen)
     connect_to = list(connect or node.connect)
+    limit = plan.fabric.max_sample_bytes
     if listen_on:
-        return ZenohConfig(listen=listen_on, connect=connect_to)
-    return ZenohConfig(connect=connect_to)
+        return ZenohConfig(listen=listen_on, connect=connect_to, max_sample_bytes=limit)
+    return ZenohConfig(connect=connect_to, max_sample_bytes=limit)
 
 
 async def run_share(

@@ -313,7 +313,12 @@ def zenoh_files(plan: DeploymentPlan, node: str) -> tuple[str, str]:
     )
     router = render_zenoh(conf, title=f"The Zenoh router of compute node {node} (in compose)")
     client = render_zenoh(
-        client_config(f"tcp/{ROUTER_SERVICE}:{ROUTER_PORT}", secure=plan.fabric.tls),
+        client_config(
+            f"tcp/{ROUTER_SERVICE}:{ROUTER_PORT}",
+            secure=plan.fabric.tls,
+            max_sample_bytes=plan.fabric.max_sample_bytes,
+            shared_memory=plan.fabric.shared_memory,
+        ),
         title=f"The processes of compute node {node}: clients of its router (RAP_ZENOH_CONFIG)",
     )
     return router, client

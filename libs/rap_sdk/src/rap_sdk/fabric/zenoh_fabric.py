@@ -33,6 +33,7 @@ from typing import Any, Literal
 import anyio
 import msgspec
 import zenoh
+from rap_schemas.limits import MAX_MESSAGE_BYTES, MESSAGE_HEADROOM
 
 from ..errors import FabricError, LifecycleError, QueryError
 from ..inbox import Inbox, InboxPolicy, Overflow
@@ -101,6 +102,13 @@ class ZenohConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_on
     """Tasks answering the queries of one queryable concurrently."""
     query_backlog: int = 1024
     """Queries waiting for a worker before new ones get an 'overloaded' error reply."""
+    max_sample_bytes: int = MAX_MESSAGE_BYTES
+    """The largest sample, query or reply payload this session's links must take: Zenoh
+    drops a message over this plus ``MESSAGE_HEADROOM`` (its
+    ``transport.link.rx.max_message_size``) before reassembling it, silently, and the
+    link stays up. A message that Zenoh's shared memory carries (between sessions of one
+    machine, up to its 16 MiB pool; off in the configs ``rap up`` and ``rap generate``
+    write) escapes the limit; a ``transport`` in :attr:`extra` replaces it."""
     extra: dict[str, Any] = {}
     """Further Zenoh configuration, merged at top level (e.g. ``transport``)."""
     runtime: str | None = LEAN_RUNTIME
@@ -124,7 +132,12 @@ class ZenohConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_on
             "listen": {"endpoints": list(self.listen)},
             "connect": {"endpoints": list(self.connect)},
             "scouting": {"multicast": {"enabled": self.multicast_scouting}},
-            "transport": {"link": {"tx": {"lease": self.lease_ms, "keep_alive": 4}}},
+            "transport": {
+                "link": {
+                    "tx": {"lease": self.lease_ms, "keep_alive": 4},
+                    "rx": {"max_message_size": self.max_sample_bytes + MESSAGE_HEADROOM},
+                }
+            },
         }
         for key, value in self.extra.items():
             if key in ("listen", "connect") and isinstance(value, dict):
