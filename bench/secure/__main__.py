@@ -312,8 +312,9 @@ def render(m: dict[str, Any], v: dict[str, Any], hw: dict[str, Any]) -> str:
             f"run; two RAP sessions as `edge.runner` and `robot.runner`; {m['size']} B "
             "messages; a round trip is two messages through the router (four hops).",
             table(["mode", "round trips", "p50 us", "p99 us", "p50 vs plain"], rows),
-            "Floods (as fast as the sender can put): the router's CPU per message, what "
-            "reached the subscriber, and the lines the router logged about refusals.",
+            "Floods (as fast as the sender can put, congestion control block): the router's "
+            "CPU per message, what the subscriber's inbox took (its default policy drops "
+            "what it cannot keep up with), and the lines the router logged about refusals.",
             table(
                 ["flood", "sender", "sent", "delivered", "router CPU us/msg", "refusal lines"],
                 frows,
