@@ -58,6 +58,7 @@ from ..fuzz.run import (
     _verdicts,
     _warm_up,
     _watch_tokens,
+    process_reports,
 )
 from ..fuzz.samples import plain, valid_body
 from ..fuzz.targets import Target, derive, kb_keys_of
@@ -383,29 +384,7 @@ async def run_fuzz_tls(
         for node in up.nodes
         for c in up.state(node)["children"]
     }
-    report["processes"] = {}
-    findings = {}
-    for p in procs:
-        f = await procinfo.read_log(str(p.log))
-        findings[p.name] = f
-        report["processes"][p.name] = {
-            "kind": p.kind,
-            "pid": p.pid,
-            "log": str(p.log),
-            "rss_before_kib": p.before.get("rss_kib"),
-            "rss_after_kib": p.after.get("rss_kib"),
-            "peak_rss_kib": p.after.get("hwm_kib"),
-            "sampled_max_rss_kib": p.rss_max_kib,
-            "sampled_max_rss_at_s": p.rss_max_at_s,
-            "cpu_s": p.after.get("cpu_s"),
-            "cpu_s_while_closing": (
-                round(p.after["cpu_s"] - p.flood_end["cpu_s"], 2)
-                if "cpu_s" in p.after and "cpu_s" in p.flood_end
-                else None
-            ),
-            "exit_code": exits.get(p.name),
-            "log_findings": f.as_dict(),
-        }
+    report["processes"], findings = await process_reports(procs, exits)
     report.update(_verdicts(report, watch, findings))
     report["wall_seconds"] = round(time.perf_counter() - t0, 1)
     report["ok"] = (

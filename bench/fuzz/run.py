@@ -763,12 +763,25 @@ async def run(opts: Options) -> dict[str, Any]:
                 _say("stopping the processes", t0)
         # every process has been stopped (SIGTERM, SIGKILL after a grace period)
     report["exit_codes"] = {p.name: p.process.returncode for p in procs}
-    report["processes"] = {}
+    report["processes"], findings = await process_reports(
+        procs, {p.name: p.process.returncode for p in procs}
+    )
+    report.update(_verdicts(report, watch, findings))
+    report["wall_seconds"] = round(time.perf_counter() - t0, 1)
+    return report
+
+
+async def process_reports(
+    procs: list[Proc], exit_codes: dict[str, int | None]
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Per process: what the run saw of it (RSS, CPU, exit code) and what its log says;
+    and the log findings by process name (for :func:`_verdicts`)."""
+    out: dict[str, Any] = {}
     findings = {}
     for p in procs:
-        f = await procinfo.read_log(p.log)
+        f = await procinfo.read_log(str(p.log))
         findings[p.name] = f
-        report["processes"][p.name] = {
+        out[p.name] = {
             "kind": p.kind,
             "pid": p.pid,
             "log": str(p.log),
@@ -783,12 +796,10 @@ async def run(opts: Options) -> dict[str, Any]:
                 if "cpu_s" in p.after and "cpu_s" in p.flood_end
                 else None
             ),
-            "exit_code": p.process.returncode,
+            "exit_code": exit_codes.get(p.name),
             "log_findings": f.as_dict(),
         }
-    report.update(_verdicts(report, watch, findings))
-    report["wall_seconds"] = round(time.perf_counter() - t0, 1)
-    return report
+    return out, findings
 
 
 async def _main(
