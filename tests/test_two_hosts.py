@@ -20,9 +20,6 @@ import contextlib
 import json
 import os
 import re
-import secrets
-import shutil
-import signal
 import subprocess
 import sys
 import time
@@ -38,7 +35,7 @@ import msgspec
 import pytest
 import yaml
 from anyio.abc import TaskStatus
-from rap_sdk.testing import OutputLines, stop_process
+from rap_sdk.testing import HostsUnavailable, OutputLines, TwoHosts, stop_process, two_hosts
 
 REPO = Path(__file__).resolve().parents[1]
 MODEL = REPO / "examples/lidar_occlusion/model.yaml"
@@ -88,24 +85,6 @@ async def _observe(endpoint: str, system: str) -> None:
 # -- two hosts: network namespaces and a veth pair ------------------------------------------
 
 
-@dataclass(frozen=True, slots=True)
-class Hosts:
-    edge: str
-    """The edge's network namespace."""
-    robot: str
-    edge_dev: str
-    """The edge's end of the veth pair."""
-    robot_dev: str
-    edge_ip: str
-    robot_ip: str
-
-
-def _ip(*args: str) -> None:
-    res = subprocess.run(["ip", *args], capture_output=True, text=True, check=False)
-    if res.returncode != 0:
-        raise RuntimeError(f"ip {' '.join(args)}: {res.stderr.strip() or res.returncode}")
-
-
 def _unavailable(problem: str) -> NoReturn:
     """Skip: this machine cannot make the hosts; fail instead where they are required."""
     from rap_sdk.testing import REQUIRE_SERVICES
@@ -115,57 +94,15 @@ def _unavailable(problem: str) -> NoReturn:
     pytest.skip(problem)
 
 
-def _remove(ns: str) -> None:
-    """Kill what is left in ``ns`` (only this test starts processes there), delete it."""
-    res = subprocess.run(["ip", "netns", "pids", ns], capture_output=True, text=True, check=False)
-    for pid in res.stdout.split():
-        with contextlib.suppress(ProcessLookupError):
-            os.kill(int(pid), signal.SIGKILL)
-    _ip("netns", "del", ns)  # and the veth end in it, which takes its peer along
-
-
 @pytest.fixture
-def hosts() -> Iterator[Hosts]:
-    if shutil.which("ip") is None:
-        _unavailable("iproute2's ip is not installed")
-    if os.geteuid() != 0:
-        _unavailable("creating network namespaces needs root")
-    tag = secrets.token_hex(3)
-    net = f"10.231.{secrets.randbelow(256)}"  # a private /30; the namespaces see no other
-    h = Hosts(
-        edge=f"rap-edge-{os.getpid()}-{tag}",
-        robot=f"rap-robot-{os.getpid()}-{tag}",
-        edge_dev=f"rv{tag}e",  # interface names have 15 characters at most
-        robot_dev=f"rv{tag}r",
-        edge_ip=f"{net}.1",
-        robot_ip=f"{net}.2",
-    )
-    made: list[str] = []
+def hosts() -> Iterator[TwoHosts]:
+    """Two namespaces and a veth pair (rap_sdk.testing.two_hosts); a failed clean-up
+    fails the test."""
     try:
-        for ns in (h.edge, h.robot):
-            try:
-                _ip("netns", "add", ns)
-            except RuntimeError as exc:  # root without CAP_SYS_ADMIN (a container, say)
-                _unavailable(f"cannot create a network namespace: {exc}")
-            made.append(ns)
-        # created inside the namespaces: nothing appears on this machine's own network
-        _ip(
-            *("link", "add", h.edge_dev, "netns", h.edge, "type", "veth"),
-            *("peer", "name", h.robot_dev, "netns", h.robot),
-        )
-        for ns, dev, ip in ((h.edge, h.edge_dev, h.edge_ip), (h.robot, h.robot_dev, h.robot_ip)):
-            _ip("-n", ns, "addr", "add", f"{ip}/30", "dev", dev)
-            _ip("-n", ns, "link", "set", "dev", dev, "up")
-            _ip("-n", ns, "link", "set", "dev", "lo", "up")
-        yield h
-    finally:
-        problems = []
-        for ns in made:
-            try:
-                _remove(ns)
-            except RuntimeError as exc:
-                problems.append(str(exc))
-        assert not problems, problems
+        with two_hosts("rap", 231) as h:
+            yield h
+    except HostsUnavailable as exc:
+        _unavailable(str(exc))
 
 
 # -- output of other processes, line by line ------------------------------------------------
@@ -323,7 +260,7 @@ def _links(log: str, peer: str) -> list[tuple[datetime, str]]:
 
 
 async def test_the_loop_closes_across_two_hosts_and_resumes_after_a_cut(
-    hosts: Hosts, tmp_path: Path
+    hosts: TwoHosts, tmp_path: Path
 ) -> None:
     model = _model_with_world(tmp_path)
     runs = {"edge": tmp_path / "edge", "robot": tmp_path / "robot"}

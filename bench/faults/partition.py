@@ -15,18 +15,13 @@ restored (each router's log)."""
 from __future__ import annotations
 
 import contextlib
-import os
-import secrets
-import shutil
-import signal
-import subprocess
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import anyio
+from rap_sdk.testing import HostsUnavailable, TwoHosts, ip, two_hosts
 
 from .common import RapUp, ScenarioError, observer, rap_up, say, write_model
 
@@ -36,70 +31,21 @@ RESUME_S = 60.0
 WARMUP_S = 60.0
 
 
-@dataclass(frozen=True)
-class Hosts:
-    edge: str
-    robot: str
-    edge_dev: str
-    robot_dev: str
-    edge_ip: str
-    robot_ip: str
+@contextlib.contextmanager
+def hosts() -> Iterator[TwoHosts]:
+    """The run's two namespaces (rap_sdk.testing.two_hosts); what stops them is said."""
+    try:
+        with two_hosts("rapf", 232) as h:
+            yield h
+    except HostsUnavailable as exc:
+        raise ScenarioError(str(exc)) from None
 
 
 def _ip(*args: str) -> None:
-    res = subprocess.run(["ip", *args], capture_output=True, text=True, check=False)
-    if res.returncode != 0:
-        raise ScenarioError(f"ip {' '.join(args)}: {res.stderr.strip() or res.returncode}")
-
-
-def _remove(ns: str) -> list[str]:
-    """Kill what is left in ``ns`` (only this run starts processes there), delete it."""
-    problems = []
-    res = subprocess.run(["ip", "netns", "pids", ns], capture_output=True, text=True, check=False)
-    for pid in res.stdout.split():
-        with contextlib.suppress(ProcessLookupError):
-            os.kill(int(pid), signal.SIGKILL)
     try:
-        _ip("netns", "del", ns)  # and the veth end in it, which takes its peer along
-    except ScenarioError as exc:
-        problems.append(str(exc))
-    return problems
-
-
-@contextlib.contextmanager
-def hosts() -> Iterator[Hosts]:
-    if shutil.which("ip") is None:
-        raise ScenarioError("iproute2's ip is not installed (apt-get install iproute2)")
-    if os.geteuid() != 0:
-        raise ScenarioError("creating network namespaces needs root")
-    tag = secrets.token_hex(3)
-    net = f"10.232.{secrets.randbelow(256)}"  # a private /30 that only the namespaces see
-    h = Hosts(
-        edge=f"rapf-edge-{os.getpid()}-{tag}",
-        robot=f"rapf-robot-{os.getpid()}-{tag}",
-        edge_dev=f"rf{tag}e",  # interface names have 15 characters at most
-        robot_dev=f"rf{tag}r",
-        edge_ip=f"{net}.1",
-        robot_ip=f"{net}.2",
-    )
-    made: list[str] = []
-    try:
-        for ns in (h.edge, h.robot):
-            _ip("netns", "add", ns)
-            made.append(ns)
-        _ip(
-            *("link", "add", h.edge_dev, "netns", h.edge, "type", "veth"),
-            *("peer", "name", h.robot_dev, "netns", h.robot),
-        )
-        for ns, dev, ip in ((h.edge, h.edge_dev, h.edge_ip), (h.robot, h.robot_dev, h.robot_ip)):
-            _ip("-n", ns, "addr", "add", f"{ip}/30", "dev", dev)
-            _ip("-n", ns, "link", "set", "dev", dev, "up")
-            _ip("-n", ns, "link", "set", "dev", "lo", "up")
-        yield h
-    finally:
-        problems = [p for ns in made for p in _remove(ns)]
-        if problems:
-            say(f"  cleaning up the namespaces: {problems}")
+        ip(*args)
+    except RuntimeError as exc:
+        raise ScenarioError(str(exc)) from None
 
 
 def _in(ns: str) -> list[str]:

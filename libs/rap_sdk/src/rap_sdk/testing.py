@@ -18,8 +18,11 @@ from __future__ import annotations
 import contextlib
 import os
 import re
+import secrets
 import shutil
-from collections.abc import Callable
+import signal
+import subprocess
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, Literal, TypeVar
@@ -41,11 +44,15 @@ __all__ = [
     "REQUIRE_SERVICES",
     "DelayedKnowledgeWrites",
     "Harness",
+    "HostsUnavailable",
     "OutputLines",
     "Record",
+    "TwoHosts",
     "free_port",
+    "ip",
     "require_binary",
     "stop_process",
+    "two_hosts",
 ]
 
 REQUIRE_SERVICES = "RAP_REQUIRE_SERVICES"
@@ -394,3 +401,89 @@ async def stop_process(proc: Any, *, grace: float = 30.0) -> None:
         if proc.returncode is None:
             proc.kill()
             await proc.wait()
+
+
+# -- two hosts on one machine: network namespaces and a veth pair ---------------------------
+
+
+class HostsUnavailable(RuntimeError):
+    """This machine cannot make network namespaces (no ``ip``, not root, no
+    CAP_SYS_ADMIN); the message says which."""
+
+
+@dataclass(frozen=True, slots=True)
+class TwoHosts:
+    edge: str
+    """The edge's network namespace."""
+    robot: str
+    edge_dev: str
+    """The edge's end of the veth pair."""
+    robot_dev: str
+    edge_ip: str
+    robot_ip: str
+
+
+def ip(*args: str) -> None:
+    """Run iproute2's ``ip`` with ``args``; ``RuntimeError`` with its message on failure."""
+    res = subprocess.run(["ip", *args], capture_output=True, text=True, check=False)
+    if res.returncode != 0:
+        raise RuntimeError(f"ip {' '.join(args)}: {res.stderr.strip() or res.returncode}")
+
+
+def _remove_namespace(ns: str) -> None:
+    """Kill what is left in ``ns`` (only its creator starts processes there), delete it."""
+    res = subprocess.run(["ip", "netns", "pids", ns], capture_output=True, text=True, check=False)
+    for pid in res.stdout.split():
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(int(pid), signal.SIGKILL)
+    ip("netns", "del", ns)  # and the veth end in it, which takes its peer along
+
+
+@contextlib.contextmanager
+def two_hosts(prefix: str, subnet: int) -> Iterator[TwoHosts]:
+    """Two network namespaces joined by a veth pair on a private /30 of
+    ``10.<subnet>.x.0`` (x random), created inside the namespaces (nothing appears on this
+    machine's own network), each with its loopback up; both deleted on exit, with what
+    still runs in them. ``prefix``: a short tag of the creator (names and devices).
+    Raises :class:`HostsUnavailable` when the machine cannot make them; ``RuntimeError``
+    when cleaning up fails."""
+    if shutil.which("ip") is None:
+        raise HostsUnavailable("iproute2's ip is not installed (apt-get install iproute2)")
+    if os.geteuid() != 0:
+        raise HostsUnavailable("creating network namespaces needs root")
+    tag = secrets.token_hex(3)
+    net = f"10.{subnet}.{secrets.randbelow(256)}"
+    h = TwoHosts(
+        edge=f"{prefix}-edge-{os.getpid()}-{tag}",
+        robot=f"{prefix}-robot-{os.getpid()}-{tag}",
+        edge_dev=f"{prefix[:2]}{tag}e",  # interface names have 15 characters at most
+        robot_dev=f"{prefix[:2]}{tag}r",
+        edge_ip=f"{net}.1",
+        robot_ip=f"{net}.2",
+    )
+    made: list[str] = []
+    try:
+        for ns in (h.edge, h.robot):
+            try:
+                ip("netns", "add", ns)
+            except RuntimeError as exc:  # root without CAP_SYS_ADMIN (a container, say)
+                raise HostsUnavailable(f"cannot create a network namespace: {exc}") from None
+            made.append(ns)
+        ip(
+            *("link", "add", h.edge_dev, "netns", h.edge, "type", "veth"),
+            *("peer", "name", h.robot_dev, "netns", h.robot),
+        )
+        for ns, dev, addr in ((h.edge, h.edge_dev, h.edge_ip), (h.robot, h.robot_dev, h.robot_ip)):
+            ip("-n", ns, "addr", "add", f"{addr}/30", "dev", dev)
+            ip("-n", ns, "link", "set", "dev", dev, "up")
+            ip("-n", ns, "link", "set", "dev", "lo", "up")
+        yield h
+    finally:
+        problems = []
+        for ns in made:
+            try:
+                _remove_namespace(ns)
+            except RuntimeError as exc:
+                problems.append(str(exc))
+        if problems:
+            raise RuntimeError(f"cleaning up the network namespaces: {'; '.join(problems)}")
