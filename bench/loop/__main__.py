@@ -279,7 +279,7 @@ ROWS_EXPLAINED = [
     "costs.",
     "- `zenoh-echo`: two cross-process hops on raw Zenoh (robot -> echo -> robot), "
     "answered inside Zenoh's callback thread: no event loop at either end, no RAP code. "
-    "Both raw-Zenoh rows run Zenoh's tasks on one worker thread, as RAP's processes do "
+    "Both raw-Zenoh rows run Zenoh's tasks on the two worker threads RAP's processes use "
     "(`ZenohConfig.runtime`).",
     "- `zenoh-echo-loop`: the same two hops with both ends woken in their asyncio loops "
     "(uvloop), as every RAP process is: the child is a one-stage relay (below) and the "

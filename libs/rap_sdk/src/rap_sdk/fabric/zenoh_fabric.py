@@ -75,10 +75,11 @@ log = logging.getLogger(__name__)
 
 
 LEAN_RUNTIME = (
-    "(rx: (worker_threads: 1), tx: (handover: rx), net: (handover: rx), "
+    "(rx: (worker_threads: 1), tx: (worker_threads: 1), net: (handover: rx), "
     "acc: (handover: rx), app: (handover: rx))"
 )
-"""All of Zenoh's tasks on one worker thread (see ``ZenohConfig.runtime``)."""
+"""Zenoh's tasks on two worker threads: one writes the links, the other does the rest (see
+``ZenohConfig.runtime``)."""
 
 
 class ZenohConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
@@ -113,11 +114,15 @@ class ZenohConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_on
     """Further Zenoh configuration, merged at top level (e.g. ``transport``)."""
     runtime: str | None = LEAN_RUNTIME
     """Zenoh's thread pools in this process, in the syntax of Zenoh's ``ZENOH_RUNTIME``
-    setting. The default hands every pool to one worker thread: each sample then wakes
-    one thread at each end instead of several, which on a small machine cuts the CPU a
-    message costs and the latency of a cross-process hop (``make bench-loop``). ``None``
-    keeps Zenoh's own pools. It applies to the whole process and is read when the
-    process's first session opens: a ``ZENOH_RUNTIME`` environment variable, or an
+    setting. The default gives Zenoh two worker threads: one writes the links, the other
+    reads them and runs everything else. A sample then wakes one thread at each end
+    instead of several, which on a small machine cuts the CPU a message costs and the
+    latency of a cross-process hop (``make bench-loop``). Writing keeps a thread of its
+    own: the thread that reads a link may wait for room in a send queue (congestion
+    control ``block``), and were it also the one thread that empties the queue, it would
+    wait for itself until Zenoh closes the link 5 s later (seen in ``make faults``).
+    ``None`` keeps Zenoh's own pools. It applies to the whole process and is read when
+    the process's first session opens: a ``ZENOH_RUNTIME`` environment variable, or an
     earlier session, wins. Processes started from this one inherit it."""
 
     def use_runtime(self) -> None:
