@@ -1,5 +1,5 @@
-"""Helpers of the I/O tests: a hand-written spec runner, a recording sink, a mosquitto of
-the test's own. (No tests here.)"""
+"""Helpers of the I/O tests: a hand-written spec runner, a recording sink, a mosquitto and
+a redis-server of the test's own. (No tests here.)"""
 
 from __future__ import annotations
 
@@ -213,6 +213,110 @@ async def mosquitto(
     tls: BrokerTls | None = None,
 ) -> AsyncIterator[Mosquitto]:
     server = Mosquitto(directory, port, passwords=passwords, tls=tls)
+    async with anyio.create_task_group() as tg:
+        try:
+            await tg.start(server.run)
+            yield server
+        finally:
+            with anyio.CancelScope(shield=True):
+                await server.stop()
+
+
+class RedisServer:
+    """A redis-server of the test's own on a free loopback port, configured by a file in
+    the test's folder; no persistence. Its log is read all along (so that the pipe never
+    fills) and kept for failure messages. ``password``: ``requirepass``; ``users``: ACL
+    lines (``"checker on >pw ~* &* +@all"``; add ``"default off"`` to refuse anonymous
+    clients); ``tls``: the port is TLS only (``tls.require_client``: clients must present
+    a certificate of ``tls.ca``). :meth:`kill` ends it at once (SIGKILL); :meth:`run` starts
+    it again on the same port."""
+
+    def __init__(
+        self,
+        directory: Path,
+        port: int | None = None,
+        *,
+        password: str | None = None,
+        users: Sequence[str] = (),
+        tls: BrokerTls | None = None,
+    ) -> None:
+        self.binary = require_binary("redis-server", hint="apt-get install redis-server")
+        self.port = port or free_port()
+        self.conf = directory / f"redis-{self.port}.conf"
+        lines = [
+            "bind 127.0.0.1",
+            'save ""',
+            "appendonly no",
+            f"dir {directory}",
+            'logfile ""',
+        ]
+        if tls is None:
+            lines.append(f"port {self.port}")
+        else:
+            lines += [
+                "port 0",
+                f"tls-port {self.port}",
+                f"tls-cert-file {tls.cert}",
+                f"tls-key-file {tls.key}",
+                f"tls-ca-cert-file {tls.ca}",
+                f"tls-auth-clients {'yes' if tls.require_client else 'no'}",
+            ]
+        if password is not None:
+            lines.append(f"requirepass {password}")
+        lines += [f"user {user}" for user in users]
+        self.conf.write_text("\n".join(lines) + "\n", encoding="utf-8")
+        self.log = ""
+        self._proc: Process | None = None
+
+    @property
+    def url(self) -> str:
+        return f"redis://127.0.0.1:{self.port}/0"
+
+    async def run(self, *, task_status: TaskStatus[None]) -> None:
+        self._proc = proc = await anyio.open_process(
+            [self.binary, str(self.conf)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT
+        )
+        assert proc.stdout is not None
+        started = False
+        with anyio.fail_after(10) as scope:
+            try:
+                async for chunk in TextReceiveStream(proc.stdout):
+                    self.log = (self.log + chunk)[-20_000:]
+                    if not started and "Ready to accept connections" in self.log:
+                        started = True
+                        scope.deadline = math.inf
+                        task_status.started()
+            except (anyio.ClosedResourceError, anyio.BrokenResourceError):
+                pass  # stopped (or killed) while its last lines were read
+        if not started:
+            raise RuntimeError(f"redis-server did not start:\n{self.log}")
+
+    async def kill(self) -> None:
+        """End the server at once, as a crash would (SIGKILL)."""
+        await self.stop(kill=True)
+
+    async def stop(self, *, kill: bool = False) -> None:
+        if self._proc is not None:
+            proc, self._proc = self._proc, None
+            if proc.returncode is None and kill:
+                proc.kill()
+            elif proc.returncode is None:
+                proc.terminate()
+            with anyio.fail_after(10):
+                await proc.wait()
+            await proc.aclose()
+
+
+@asynccontextmanager
+async def redis_server(
+    directory: Path,
+    port: int | None = None,
+    *,
+    password: str | None = None,
+    users: Sequence[str] = (),
+    tls: BrokerTls | None = None,
+) -> AsyncIterator[RedisServer]:
+    server = RedisServer(directory, port, password=password, users=users, tls=tls)
     async with anyio.create_task_group() as tg:
         try:
             await tg.start(server.run)

@@ -117,6 +117,14 @@ MISTAKES = [
     (("--bogus",), "No such option: --bogus"),
     ((), "nothing to run on"),
     (("--input-file", "t.trace", "--mqtt", "h:1"), "--input-file runs alone"),
+    (("--input-file", "t.trace", "--redis", "redis://h"), "--input-file runs alone"),
+    (("--redis", "http://h:1"), "'http://h:1' is not a Redis URL (--redis)"),
+    (("--redis", "redis://:pw@h"), "the Redis URL (--redis) holds a user name or a password"),
+    (("--redis", "redis://h:1/x"), "'x' is not a database number"),
+    (("--redis", "redis://h", "--redis-channels", "[1]"), "--redis-channels: Expected `object`"),
+    (("--redis", "redis://h", "--redis-cert", "c.pem"), "needs its key and the key its cert"),
+    (("--fabric", "s", "--redis-user", "u"), "the --redis-* options go with --redis URL"),
+    (("--redis", "redis://h", "--redis-password-env", "TC_NOPE_X"), "$TC_NOPE_X is not set"),
 ]
 
 

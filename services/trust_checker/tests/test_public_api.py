@@ -29,7 +29,16 @@ PACKAGE = {
     "load_spec",
 }
 SERVICE = {"TrustService", "open_service"}
-CONFIG = {"FabricConfig", "FabricInput", "MqttConfig", "ServiceConfig", "TopicMap", "decode_map"}
+CONFIG = {
+    "ChannelMap",
+    "FabricConfig",
+    "FabricInput",
+    "MqttConfig",
+    "RedisConfig",
+    "ServiceConfig",
+    "TopicMap",
+    "decode_map",
+}
 
 MODULES = sorted(
     m.name for m in pkgutil.walk_packages(trust_checker.__path__, prefix="trust_checker.")
@@ -71,6 +80,7 @@ def test_every_module_is_listed() -> None:
         "trust_checker.io.fabric",
         "trust_checker.io.mqtt",
         "trust_checker.io.ports",
+        "trust_checker.io.redis",
         "trust_checker.io.session",
         "trust_checker.io.specs",
         "trust_checker.io.ticks",

@@ -1,19 +1,24 @@
-"""``python -m trust_checker SPEC``: run a trust spec on a trace file, MQTT or the fabric.
+"""``python -m trust_checker SPEC``: run a trust spec on a trace file, MQTT, Redis or the
+fabric.
 
     python -m trust_checker spec.dsrv --input-file trace.txt      console lines, then exit
     python -m trust_checker spec.dsrv --check                     validate only
     python -m trust_checker spec.dsrv --mqtt 127.0.0.1:1883 [--topics JSON] [--tagged]
+    python -m trust_checker spec.dsrv --redis redis://127.0.0.1:6379/0 [--redis-channels JSON]
     python -m trust_checker spec.dsrv --fabric SYSTEM [--connect EP ...] [--listen EP ...]
     python -m trust_checker new.dsrv --send-swap --fabric SYSTEM --connect EP --as NAME --certs DIR
     python -m trust_checker new.dsrv --send-swap --mqtt HOST:PORT --as NAME --certs DIR
+    python -m trust_checker new.dsrv --send-swap --redis URL --as NAME --certs DIR
 
 MQTT connections take a user name (``--mqtt-user``), a password from an environment
 variable (``--mqtt-password-env VAR``) or a file (``--mqtt-password-file``), never from
 the command line, and TLS (``--mqtt-ca``, and ``--mqtt-cert``/``--mqtt-key`` for a
-broker that wants a client certificate). With identities (``--certs DIR``, default
+broker that wants a client certificate); Redis connections the same with ``--redis-*``
+(``rediss://`` or ``--redis-tls`` for TLS). With identities (``--certs DIR``, default
 ``$RAP_CERTS``: the folder ``rap certs`` wrote) the checker takes a new spec, over the
-fabric or MQTT, only when an operator signed it; ``--send-swap`` sends one, signed as
-``--as NAME`` (default ``$RAP_AS``), and prints what the checker answered.
+fabric, MQTT or Redis, only when an operator signed it (over Redis, only with
+identities); ``--send-swap`` sends one, signed as ``--as NAME`` (default ``$RAP_AS``),
+and prints what the checker answered.
 
 A mistake on the command line or in a file (a bad option value, a bad JSON map, a spec
 or trace file that is missing or not text, a bad endpoint or system name) is one line on
@@ -25,8 +30,9 @@ print each output as a console line (``name[tick] = Int(7)``) and run until SIGT
 SIGINT, then exit 0.
 
 Live modes publish verdicts (a Bool output turned false, a trigger fired; see
-docs/trust_checker.md, "Explanations and triggers") on the fabric and on MQTT
-(``--verdict-topic``). ``--explain`` also writes each verdict to stderr as one JSON line
+docs/trust_checker.md, "Explanations and triggers") on the fabric, on MQTT
+(``--verdict-topic``) and on Redis (``--redis-verdict-channel``, and a stream with
+``--redis-verdict-stream``). ``--explain`` also writes each verdict to stderr as one JSON line
 (``rap.TrustVerdict``); stdout stays the reference checker's console lines.
 """
 
@@ -60,13 +66,23 @@ from rap_sdk.identity import AS_ENV, CERTS_ENV, IdentityError, load_signer, load
 from rap_sdk.logs import LogContext, check_redis_url, open_file_log, publish_logs
 from rap_sdk.metrics import TrustCollector, VerdictCounts, check_metrics_option, start_metrics
 
-from .config import FabricConfig, FabricInput, MqttConfig, ServiceConfig, TopicMap, decode_map
+from .config import (
+    ChannelMap,
+    FabricConfig,
+    FabricInput,
+    MqttConfig,
+    RedisConfig,
+    ServiceConfig,
+    TopicMap,
+    decode_map,
+)
 from .console import ConsoleSink, console_lines, verdict_lines
 from .engine import SpecRunner
 from .errors import EvalError, InputError, SpecError, TextFileError
 from .explain import Explainer, to_message
 from .io.mqtt import mqtt_credentials
 from .io.ports import Sink
+from .io.redis import redis_credentials
 from .lang import load_spec, read_source
 from .lang.ast import Spec
 from .service import TrustService, open_service
@@ -82,7 +98,7 @@ T = TypeVar("T")
 
 log = logging.getLogger(__name__)
 
-_HOW_TO_RUN = "give --input-file FILE, --mqtt HOST:PORT or --fabric SYSTEM"
+_HOW_TO_RUN = "give --input-file FILE, --mqtt HOST:PORT, --redis URL or --fabric SYSTEM"
 _MQTT_OPTIONS = (
     ("password_env", "--mqtt-password-env"),
     ("password_file", "--mqtt-password-file"),
@@ -90,6 +106,19 @@ _MQTT_OPTIONS = (
     ("cert", "--mqtt-cert"),
     ("key", "--mqtt-key"),
 )
+_REDIS_OPTIONS = (
+    ("password_env", "--redis-password-env"),
+    ("password_file", "--redis-password-file"),
+    ("username", "--redis-user"),
+    ("cert", "--redis-cert"),
+    ("key", "--redis-key"),
+    ("url", "--redis"),
+)
+_EXAMPLES: dict[type, str] = {
+    TopicMap: '{"stream": {"topic": "a/b"}}',
+    ChannelMap: '{"stream": {"channel": "robot/x"}}',
+    FabricInput: '{"stream": {"key": "rap/s/data/x", "field": "f"}}',
+}
 
 
 def _mqtt_address(text: str) -> tuple[str, int]:
@@ -118,7 +147,8 @@ def main(
         ),
     ] = None,
     tagged: Annotated[
-        bool, typer.Option("--tagged", help='Publish D5.2 tagged values ({"Int": 42}).')
+        bool,
+        typer.Option("--tagged", help='Publish D5.2 tagged values ({"Int": 42}) (MQTT, Redis).'),
     ] = False,
     spec_topic: Annotated[str, typer.Option(help="MQTT hot-swap topic.")] = "trust/spec",
     status_topic: Annotated[str, typer.Option(help="MQTT swap-status topic.")] = "trust/status",
@@ -195,6 +225,89 @@ def main(
     mqtt_key: Annotated[
         str, typer.Option("--mqtt-key", metavar="PEM", help="The client certificate's key.")
     ] = "",
+    redis: Annotated[
+        str | None,
+        typer.Option(
+            "--redis",
+            metavar="URL",
+            help="Run on Redis pub/sub: redis://HOST:PORT/DB (rediss:// for TLS).",
+        ),
+    ] = None,
+    redis_channels: Annotated[
+        str | None,
+        typer.Option(
+            "--redis-channels",
+            metavar="JSON",
+            help='Redis channel map, JSON: {"stream": {"channel": "robot/x"}} (default: '
+            "the stream's name; an input channel with * ? [ is a pattern).",
+        ),
+    ] = None,
+    redis_spec_channel: Annotated[
+        str,
+        typer.Option(
+            "--redis-spec-channel",
+            metavar="CHANNEL",
+            help="Redis hot-swap channel (read only with --certs).",
+        ),
+    ] = "trust/spec",
+    redis_status_channel: Annotated[
+        str,
+        typer.Option(
+            "--redis-status-channel", metavar="CHANNEL", help="Redis swap-status channel."
+        ),
+    ] = "trust/status",
+    redis_verdict_channel: Annotated[
+        str,
+        typer.Option(
+            "--redis-verdict-channel",
+            metavar="CHANNEL",
+            help='Redis channel of the verdicts (JSON); "" for none.',
+        ),
+    ] = "trust/verdicts",
+    redis_verdict_stream: Annotated[
+        str,
+        typer.Option(
+            "--redis-verdict-stream",
+            metavar="KEY",
+            help="Also XADD each verdict to this Redis stream (field verdict).",
+        ),
+    ] = "",
+    redis_user: Annotated[
+        str, typer.Option("--redis-user", metavar="NAME", help="Redis ACL user name.")
+    ] = "",
+    redis_password_env: Annotated[
+        str,
+        typer.Option(
+            "--redis-password-env",
+            metavar="VAR",
+            help="The environment variable holding the Redis password.",
+        ),
+    ] = "",
+    redis_password_file: Annotated[
+        str,
+        typer.Option(
+            "--redis-password-file",
+            metavar="FILE",
+            help="A file holding the Redis password (its first line).",
+        ),
+    ] = "",
+    redis_tls: Annotated[
+        bool,
+        typer.Option("--redis-tls", help="Redis over TLS (implied by rediss:// and --redis-ca)."),
+    ] = False,
+    redis_ca: Annotated[
+        str,
+        typer.Option(
+            "--redis-ca", metavar="PEM", help="The CA the server's certificate is checked against."
+        ),
+    ] = "",
+    redis_cert: Annotated[
+        str,
+        typer.Option("--redis-cert", metavar="PEM", help="A client certificate for Redis."),
+    ] = "",
+    redis_key: Annotated[
+        str, typer.Option("--redis-key", metavar="PEM", help="The client certificate's key.")
+    ] = "",
     certs: Annotated[
         Path | None,
         typer.Option(
@@ -210,8 +323,8 @@ def main(
         bool,
         typer.Option(
             "--send-swap",
-            help="Send SPEC to a running checker (--fabric SYSTEM --node N, or --mqtt) as "
-            "a hot swap, signed as --as, and print its answer.",
+            help="Send SPEC to a running checker (--fabric SYSTEM --node N, --mqtt or "
+            "--redis) as a hot swap, signed as --as, and print its answer.",
         ),
     ] = False,
     identity: Annotated[
@@ -270,6 +383,48 @@ def main(
             mqtt_credentials(mqtt_cfg)  # a missing password or certificate: said now
         except ConfigError as exc:
             raise fail(str(exc)) from None
+    redis_options = (
+        redis_channels is not None,
+        redis_spec_channel != "trust/spec",
+        redis_status_channel != "trust/status",
+        redis_verdict_channel != "trust/verdicts",
+        redis_verdict_stream or redis_user or redis_password_env or redis_password_file,
+        redis_tls or redis_ca or redis_cert or redis_key,
+    )
+    if redis is None and any(redis_options):
+        raise fail("the --redis-* options go with --redis URL - give it, or drop them")
+    redis_cfg = None
+    if redis is not None:
+        try:
+            redis_cfg = RedisConfig(
+                url=redis,
+                channels=(
+                    _decode(redis_channels, ChannelMap, "--redis-channels")
+                    if redis_channels
+                    else {}
+                ),
+                tagged=tagged,
+                spec_channel=redis_spec_channel,
+                status_channel=redis_status_channel,
+                verdict_channel=redis_verdict_channel,
+                verdict_stream=redis_verdict_stream,
+                username=redis_user,
+                password_env=redis_password_env,
+                password_file=redis_password_file,
+                tls=redis_tls,
+                ca=redis_ca,
+                cert=redis_cert,
+                key=redis_key,
+            )
+        except ValueError as exc:
+            text = str(exc)
+            for field, option in _REDIS_OPTIONS:
+                text = text.replace(f"({field})", f"({option})")
+            raise fail(text) from None
+        try:
+            redis_credentials(redis_cfg)  # a missing password or certificate: said now
+        except ConfigError as exc:
+            raise fail(str(exc)) from None
     fabric_cfg = None
     zconf = None
     if fabric is not None:
@@ -277,24 +432,30 @@ def main(
             fabric, node, fabric_inputs, not no_default_inputs, connect, listen
         )
     try:
-        config = ServiceConfig(node=node, tick=tick, mqtt=mqtt_cfg, fabric=fabric_cfg)
+        config = ServiceConfig(
+            node=node, tick=tick, mqtt=mqtt_cfg, redis=redis_cfg, fabric=fabric_cfg
+        )
     except ValueError as exc:  # the tick policy
         raise fail(f"--tick: {exc}") from None
-    if input_file is not None and (mqtt_cfg is not None or fabric_cfg is not None):
-        raise fail("--input-file runs alone - drop --mqtt and --fabric, or --input-file")
+    live = [cfg for cfg in (mqtt_cfg, redis_cfg, fabric_cfg) if cfg is not None]
+    if input_file is not None and live:
+        raise fail("--input-file runs alone - drop --mqtt, --redis and --fabric, or --input-file")
     parsed = _load(spec)
     if send_swap:
         if input_file is not None or check:
             raise fail("--send-swap sends SPEC to a running checker - drop --input-file/--check")
-        if (mqtt_cfg is None) == (fabric_cfg is None):
-            raise fail("--send-swap: give one of --fabric SYSTEM (with --node) or --mqtt HOST:PORT")
+        if len(live) != 1:
+            raise fail(
+                "--send-swap: give one of --fabric SYSTEM (with --node), --mqtt HOST:PORT "
+                "or --redis URL"
+            )
         if fabric_cfg is not None and not connect:
             raise fail(
                 "--send-swap --fabric: give --connect ENDPOINT (the checker's listen "
                 "endpoint, or a router of the system)"
             )
         signer = _signer(certs, identity)
-        code = anyio.run(_send_swap, spec, mqtt_cfg, fabric_cfg, zconf, node, signer)
+        code = anyio.run(_send_swap, spec, mqtt_cfg, redis_cfg, fabric_cfg, zconf, node, signer)
         raise typer.Exit(code)
     if check:
         typer.echo(
@@ -305,7 +466,7 @@ def main(
     if input_file is not None:
         _run_file(parsed, input_file, explain=explain)
         return
-    if mqtt_cfg is None and fabric_cfg is None:
+    if not live:
         raise fail(f"nothing to run on - {_HOW_TO_RUN}")
     if log_redis is not None and not fabric:
         raise fail("--log-redis names the stream by system - give --fabric SYSTEM too")
@@ -331,11 +492,7 @@ def _decode(text: str, value_type: type[T], option: str) -> dict[str, T]:
     try:
         return decode_map(text, value_type, option)
     except ConfigError as exc:
-        example = (
-            '{"stream": {"topic": "a/b"}}'
-            if value_type is TopicMap
-            else '{"stream": {"key": "rap/s/data/x", "field": "f"}}'
-        )
+        example = _EXAMPLES.get(value_type, "{}")
         raise fail(f"{exc} - write a JSON object like {example}") from None
 
 
@@ -489,6 +646,7 @@ def _signer(certs: Path | None, identity: str | None) -> Signer | None:
 async def _send_swap(
     spec: Path,
     mqtt_cfg: MqttConfig | None,
+    redis_cfg: RedisConfig | None,
     fabric_cfg: FabricConfig | None,
     zconf: ZenohConfig | None,
     node: str,
@@ -507,6 +665,14 @@ async def _send_swap(
             async with ZenohFabric(conf) as fab:
                 await fab.wait_matched(key, queryable=True, timeout=5.0)
                 status = await fabric_swap(fab, key, text, signer=signer, path=path)
+        except RapError as exc:
+            typer.echo(f"error: {exc}", err=True)
+            return 1
+    elif redis_cfg is not None:
+        from .io.redis import redis_swap
+
+        try:
+            status = await redis_swap(redis_cfg, text, node=node, signer=signer, path=path)
         except RapError as exc:
             typer.echo(f"error: {exc}", err=True)
             return 1

@@ -2,15 +2,16 @@
 
 :class:`ServiceConfig` is what :func:`trust_checker.service.open_service` runs: the
 checker's node id, its tick policy, and the transports (:class:`MqttConfig`,
-:class:`FabricConfig`; either, both, or none for a checker fed in Python). The command
-line builds these from its flags; JSON maps (``--topics``, ``--fabric-inputs``) are
-decoded strictly with :func:`decode_map`, whose errors name the ``$.path`` of the bad
-part (:class:`rap_sdk.ConfigError`).
+:class:`RedisConfig`, :class:`FabricConfig`; any of them, or none for a checker fed in
+Python). The command line builds these from its flags; JSON maps (``--topics``,
+``--redis-channels``, ``--fabric-inputs``) are decoded strictly with :func:`decode_map`,
+whose errors name the ``$.path`` of the bad part (:class:`rap_sdk.ConfigError`).
 """
 
 from __future__ import annotations
 
-from typing import Annotated, Any, TypeVar
+from typing import Annotated, Any, Final, TypeVar
+from urllib.parse import urlsplit
 
 import msgspec
 from rap_schemas.limits import DECODE_ERRORS, decode_failure
@@ -19,9 +20,11 @@ from rap_sdk.errors import ConfigError
 from .io.ticks import TickPolicy, parse_tick_policy
 
 __all__ = [
+    "ChannelMap",
     "FabricConfig",
     "FabricInput",
     "MqttConfig",
+    "RedisConfig",
     "ServiceConfig",
     "TopicMap",
     "decode_map",
@@ -97,6 +100,129 @@ class MqttConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_onl
         return m.topic if m is not None else stream
 
 
+class ChannelMap(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """Where one stream lives on Redis pub/sub (an input's channel or pattern, or an
+    output's channel)."""
+
+    channel: Annotated[str, msgspec.Meta(min_length=1)]
+
+
+REDIS_PORT: Final = 6379
+_REDIS_HOW: Final = (
+    "write redis://HOST[:PORT][/DB], or rediss://... for TLS, e.g. redis://127.0.0.1:6379/0"
+)
+_DIGITS: Final = frozenset("0123456789")
+
+
+def _split_redis_url(url: str) -> tuple[str, int, int, bool]:
+    """``redis[s]://host[:port][/db]`` to (host, port, db, TLS); ``ValueError`` saying
+    how to write it otherwise. A user name or password in the URL is refused: a URL
+    goes on command lines and in configs, which others see."""
+    try:
+        parts = urlsplit(url)
+    except ValueError as exc:  # not echoing the URL: it may hold a password
+        raise ValueError(f"the Redis URL (url) is not one ({exc}) - {_REDIS_HOW}") from None
+    if "@" in parts.netloc:
+        raise ValueError(
+            "the Redis URL (url) holds a user name or a password - drop it from the URL; "
+            "give the user name as username and the password in password_env or "
+            "password_file (a URL is seen by others)"
+        )
+    try:
+        port = parts.port
+    except ValueError as exc:
+        raise ValueError(f"the Redis URL (url) {url!r}: {exc} - {_REDIS_HOW}") from None
+    if parts.scheme not in ("redis", "rediss") or not parts.hostname:
+        raise ValueError(f"{url!r} is not a Redis URL (url) - {_REDIS_HOW}")
+    if parts.query or parts.fragment:
+        raise ValueError(
+            f"the Redis URL (url) {url!r} has a query or a fragment, which are not read "
+            f"- {_REDIS_HOW}"
+        )
+    db = parts.path[1:] if parts.path.startswith("/") else parts.path
+    if db and not (set(db) <= _DIGITS and len(db) <= 6):
+        raise ValueError(
+            f"the Redis URL (url) {url!r}: {db!r} is not a database number - {_REDIS_HOW}"
+        )
+    return parts.hostname, port or REDIS_PORT, int(db or 0), parts.scheme == "rediss"
+
+
+class RedisConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """The checker on Redis pub/sub (see :mod:`trust_checker.io.redis`)."""
+
+    url: str = "redis://127.0.0.1:6379/0"
+    """``redis://HOST[:PORT][/DB]`` (``rediss://`` for TLS); no user name or password in
+    it (``username``, ``password_env``, ``password_file``)."""
+    channels: dict[str, ChannelMap] = {}
+    """stream -> channel; a stream not named here uses its own name as the channel. An
+    input's channel with ``*``, ``?`` or ``[`` is a pattern (``PSUBSCRIBE``)."""
+    tagged: bool = False
+    """Publish outputs in D5.2's tagged form (``{"Int": 42}``) instead of ``{"value": 42}``."""
+    spec_channel: str = "trust/spec"
+    """Hot swap, with identities only: a signed ``{"spec": ..., "auth": ...}`` here
+    replaces the running spec ("" for none)."""
+    status_channel: str = "trust/status"
+    """The outcome of every spec update (``rap.TrustSpecStatus`` as JSON)."""
+    verdict_channel: str = "trust/verdicts"
+    """Verdicts (``rap.TrustVerdict`` as JSON), when the session explains; "" for none."""
+    verdict_stream: str = ""
+    """A Redis stream the verdicts are also added to (``XADD``, field ``verdict``), for
+    readers that were not subscribed when they came; "" for none."""
+    stream_maxlen: Annotated[int, msgspec.Meta(ge=1)] = 10_000
+    """About how many verdicts the stream keeps (``MAXLEN ~``)."""
+    client_name: str = ""
+    """A name for the connections on the server (``CLIENT SETNAME``, seen in ``CLIENT
+    LIST``); "" for none (an ACL user then needs no ``client`` command)."""
+    timeout: Annotated[float, msgspec.Meta(gt=0)] = 10.0
+    """Seconds for connecting and for each command (publish, subscribe)."""
+    reconnect_max: Annotated[float, msgspec.Meta(gt=0)] = 5.0
+    """Longest pause between reconnection attempts (doubling from 0.1 s)."""
+    username: str = ""
+    """An ACL user name ("" for none: a password alone is ``AUTH password``, the
+    ``default`` user, as with ``requirepass``)."""
+    password_env: str = ""
+    """The environment variable holding the password (never the password itself)."""
+    password_file: str = ""
+    """A file holding the password (its first line); read at each connection."""
+    tls: bool = False
+    """Connect over TLS, checking the server's certificate (against ``ca``, else the
+    system's CAs) and its name. Implied by ``rediss://``, ``ca``, ``cert`` and ``key``."""
+    ca: str = ""
+    """The CA certificate (PEM) the server's certificate must be signed by."""
+    cert: str = ""
+    """A client certificate (PEM) to present, for servers that require one."""
+    key: str = ""
+    """Its private key (PEM, unencrypted)."""
+
+    def __post_init__(self) -> None:
+        _split_redis_url(self.url)
+        if self.password_env and self.password_file:
+            raise ValueError(
+                "give the Redis password either in an environment variable (password_env) "
+                "or in a file (password_file), not both"
+            )
+        if bool(self.cert) != bool(self.key):
+            raise ValueError(
+                "a Redis client certificate needs its key and the key its certificate - "
+                "give both the certificate (cert) and its key (key), or neither"
+            )
+
+    @property
+    def address(self) -> tuple[str, int, int]:
+        """(host, port, database number) of :attr:`url`."""
+        host, port, db, _ = _split_redis_url(self.url)
+        return host, port, db
+
+    @property
+    def secure(self) -> bool:
+        """Whether the connection is TLS."""
+        return self.tls or bool(self.ca or self.cert) or _split_redis_url(self.url)[3]
+
+    def channel_of(self, stream: str) -> str:
+        m = self.channels.get(stream)
+        return m.channel if m is not None else stream
+
+
 class FabricInput(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """An explicit input: the stream takes each message on ``key`` (a key expression):
     its body as plain data, or the one ``field`` of it."""
@@ -141,6 +267,7 @@ class ServiceConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     capacity: Annotated[int, msgspec.Meta(ge=1)] = 1024
     """Messages (or batches, or spec updates) that may wait for the session."""
     mqtt: MqttConfig | None = None
+    redis: RedisConfig | None = None
     fabric: FabricConfig | None = None
 
     def __post_init__(self) -> None:

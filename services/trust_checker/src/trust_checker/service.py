@@ -10,12 +10,12 @@ wired and running for the duration of a block.
         ...                                   # running: inputs in, outputs and verdicts out
         service.session.stats, service.fabric.stats.rejections.by_reason
 
-On entry every part is ready (the console writer and the session started, MQTT
-connected and subscribed, the fabric subscribed and the swap queryable served); on exit
-all of it stops. With identities (``verifier=``, or ``RAP_CERTS`` in the environment) a
-hot swap, over the fabric or MQTT, needs an operator's signature
-(:mod:`trust_checker.io.auth`). ``python -m trust_checker``, bench/trust and the tests all run the
-checker through here.
+On entry every part is ready (the console writer and the session started, MQTT and
+Redis connected and subscribed, the fabric subscribed and the swap queryable served); on
+exit all of it stops. With identities (``verifier=``, or ``RAP_CERTS`` in the
+environment) a hot swap, over the fabric, MQTT or Redis, needs an operator's signature
+(:mod:`trust_checker.io.auth`); over Redis there is none without identities.
+``python -m trust_checker``, bench/trust and the tests all run the checker through here.
 """
 
 from __future__ import annotations
@@ -37,6 +37,7 @@ from .engine import SpecRunner
 from .io.fabric import FabricTransport
 from .io.mqtt import MqttTransport
 from .io.ports import RunnerLike, RunningSink, Sink, SpecLoader
+from .io.redis import RedisTransport
 from .io.session import Session
 from .io.specs import load_text
 from .lang import ast
@@ -56,6 +57,8 @@ class TrustService:
     """The MQTT transport, when ``config.mqtt`` is set."""
     fabric: FabricTransport | None
     """The fabric transport, when ``config.fabric`` is set."""
+    redis: RedisTransport | None = None
+    """The Redis transport, when ``config.redis`` is set."""
 
     @property
     def runner(self) -> RunnerLike:
@@ -65,7 +68,8 @@ class TrustService:
     @property
     def rejected(self) -> int:
         """Payloads the transports refused, in all."""
-        return sum(t.stats.rejections.total for t in (self.mqtt, self.fabric) if t is not None)
+        transports = (self.mqtt, self.redis, self.fabric)
+        return sum(t.stats.rejections.total for t in transports if t is not None)
 
     def summary(self) -> str:
         """One line of counts, for the log when the service stops."""
@@ -97,9 +101,9 @@ async def open_service(
     console) is started first. ``loader`` parses and checks hot-swapped specs (default:
     :func:`~trust_checker.io.specs.load_text`, which never opens a file); ``clock`` the
     wall clock of tick times. ``verifier``: take hot swaps only from requests an operator
-    of its CA signed (default: ``RAP_CERTS``'s CA when it is set; else every swap is
-    taken). Raises :class:`rap_sdk.ConfigError` for a mismatch between ``config`` and
-    ``fabric``."""
+    of its CA signed (default: ``RAP_CERTS``'s CA when it is set; else every swap over
+    the fabric and MQTT is taken, and none over Redis). Raises
+    :class:`rap_sdk.ConfigError` for a mismatch between ``config`` and ``fabric``."""
     if config.fabric is not None and fabric is None:
         raise ConfigError(
             f"config.fabric is set (system {config.fabric.system!r}) but no fabric was "
@@ -126,13 +130,16 @@ async def open_service(
         mqtt = None
         if config.mqtt is not None:
             mqtt = MqttTransport(session, config.mqtt, gate=gate)
+        red = None
+        if config.redis is not None:
+            red = RedisTransport(session, config.redis, gate=gate)
         fab = None
         if config.fabric is not None and fabric is not None:
             fab = FabricTransport(session, config.fabric, fabric=fabric, gate=gate)
     except BaseException:
         session.discard()
         raise
-    service = TrustService(config, session, mqtt, fab)
+    service = TrustService(config, session, mqtt, fab, red)
     async with anyio.create_task_group() as tg:
         for sink in sinks:
             if isinstance(sink, RunningSink):
@@ -140,6 +147,8 @@ async def open_service(
         await tg.start(session.run)
         if mqtt is not None:
             await tg.start(mqtt.run)
+        if red is not None:
+            await tg.start(red.run)
         if fab is not None:
             await tg.start(fab.run)
         log.info(
