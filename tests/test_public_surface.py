@@ -14,6 +14,7 @@ REPO = Path(__file__).resolve().parents[1]
 PACKAGES = {  # package -> its folder
     "rap_schemas": REPO / "schemas",
     "rap_sdk": REPO / "libs" / "rap_sdk",
+    "rap_bridges": REPO / "libs" / "rap_bridges",
     "knowledge": REPO / "services" / "knowledge",
     "maplek_runner": REPO / "services" / "maplek_runner",
     "sim_world": REPO / "services" / "sim_world",

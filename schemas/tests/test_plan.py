@@ -98,6 +98,12 @@ def test_a_minimal_plan_takes_the_defaults() -> None:
             ["knowledge.url is for the redis backend", "set backend: redis"],
         ),
         (
+            "backend: memory",
+            "backend: memcached\n  url: redis://x",
+            "p.yaml:9:8",
+            ["knowledge.url 'redis://x' is not a memcached URL", "memcached://HOST[:PORT]"],
+        ),
+        (
             "    stage: analyse",
             "    stage: analyze",
             "p.yaml:17:12",

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import msgspec
 from rap_cli.deploy import PYTHON, Paths, node_processes, resolve_endpoint, resolve_url
 from rap_schemas import PlanDocument, Stage
 from rap_schemas.plan import ComponentSpec, ComputeNode, DeploymentPlan, KnowledgeSpec, TrustSpec
@@ -62,3 +63,14 @@ def test_each_node_runs_its_router_first_then_its_share(tmp_path: Path) -> None:
     deck = node_processes(doc, "deck", paths=Paths.local(model, tmp_path / "run", "deck"))
     assert [p.name for p in deck] == ["router", "sim"]
     assert deck[1].argv == (PYTHON, "-m", "sim", "--system", "ship")
+
+
+def test_memcached_knowledge_gets_its_url_and_its_sqlite_file(tmp_path: Path) -> None:
+    kb_spec = KnowledgeSpec(backend="memcached", node="companion", url="memcached://companion")
+    doc = PlanDocument.from_plan(msgspec.structs.replace(PLAN, knowledge=kb_spec))
+    paths = Paths.local(tmp_path / "model.yaml", tmp_path / "run", "companion")
+    processes = node_processes(doc, "companion", paths=paths, addresses={"companion": "10.0.0.2"})
+    argv = next(p for p in processes if p.name == "knowledge").argv
+    assert argv[argv.index("--backend") + 1] == "memcached"
+    assert argv[argv.index("--memcached-url") + 1] == "memcached://10.0.0.2"
+    assert argv[argv.index("--sqlite-path") + 1].endswith("knowledge.sqlite3")

@@ -333,14 +333,18 @@ class TrustSpec(_Plan, frozen=True, kw_only=True):
 class KnowledgeSpec(_Plan, frozen=True, kw_only=True):
     """Where knowledge lives and how it is stored."""
 
-    backend: Literal["memory", "sqlite", "redis"] = "memory"
-    """`memory` (lost on restart), `sqlite` (a file) or `redis`."""
+    backend: Literal["memory", "sqlite", "redis", "memcached"] = "memory"
+    """`memory` (lost on restart), `sqlite` (a file), `redis`, or `memcached` (the
+    latest values in memcached; history, the key list and models in the SQLite file)."""
     node: Name | None = None
     """The compute node that hosts the knowledge service."""
     path: str | None = None
-    """The SQLite file (``backend: sqlite``)."""
+    """The SQLite file (``backend: sqlite``, and ``backend: memcached`` for history and
+    models)."""
     url: str | None = None
-    """The Redis URL (``backend: redis``)."""
+    """The Redis URL (``backend: redis``, e.g. ``redis://127.0.0.1:6379/0``) or the
+    memcached URL (``backend: memcached``, ``memcached://HOST[:PORT]``, by default
+    ``memcached://127.0.0.1:11211``)."""
 
 
 class ComponentSpec(_Plan, frozen=True, kw_only=True):
@@ -523,14 +527,21 @@ def plan_findings(plan: DeploymentPlan) -> Iterator[Finding]:
             f"define; use one of {listed} or add it under compute_nodes",
             False,
         )
-    for field, backend in (("path", "sqlite"), ("url", "redis")):
-        if getattr(kb, field) is not None and kb.backend != backend:
+    for field, backends in (("path", ("sqlite", "memcached")), ("url", ("redis", "memcached"))):
+        if getattr(kb, field) is not None and kb.backend not in backends:
             yield (
                 ("knowledge", field),
-                f"knowledge.{field} is for the {backend} backend, but the backend is "
-                f"{kb.backend!r}; set backend: {backend} or remove {field}",
+                f"knowledge.{field} is for the {backends[0]} backend (and {backends[1]}), but "
+                f"the backend is {kb.backend!r}; set backend: {backends[0]} or remove {field}",
                 False,
             )
+    if kb.backend == "memcached" and kb.url is not None and not kb.url.startswith("memcached://"):
+        yield (
+            ("knowledge", "url"),
+            f"knowledge.url {kb.url!r} is not a memcached URL; write "
+            "memcached://HOST[:PORT], e.g. memcached://127.0.0.1:11211",
+            False,
+        )
     limit = plan.fabric.max_sample_bytes
     if not _MIN_SAMPLE_LIMIT <= limit <= _MAX_SAMPLE_LIMIT:
         low = limit < _MIN_SAMPLE_LIMIT

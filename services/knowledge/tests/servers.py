@@ -1,7 +1,11 @@
-"""Servers a test starts itself, on a free loopback port, and can restart."""
+"""Servers a test starts itself, on a free loopback port, and can restart (redis-server,
+memcached)."""
 
 from __future__ import annotations
 
+import contextlib
+import os
+import pwd
 import subprocess
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -73,6 +77,77 @@ class RedisServer:
 @asynccontextmanager
 async def redis_server(directory: Path) -> AsyncIterator[RedisServer]:
     server = RedisServer(directory)
+    await server.start()
+    try:
+        yield server
+    finally:
+        with anyio.CancelScope(shield=True):
+            await server.stop()
+
+
+class MemcachedServer:
+    """A memcached of our own on a free loopback port (64 MiB; it keeps nothing across a
+    restart, as memcached never does)."""
+
+    def __init__(self, *, memory_mb: int = 64) -> None:
+        self.binary = require_binary("memcached", hint="apt-get install memcached")
+        self.port = free_port()
+        self.memory_mb = memory_mb
+        self._proc: Process | None = None
+
+    @property
+    def url(self) -> str:
+        return f"memcached://127.0.0.1:{self.port}"
+
+    async def start(self) -> None:
+        # memcached refuses to run as root unless told which user to run as
+        user = pwd.getpwuid(os.geteuid()).pw_name
+        self._proc = await anyio.open_process(
+            [
+                self.binary,
+                "--listen=127.0.0.1",
+                f"--port={self.port}",
+                "--udp-port=0",
+                f"--memory-limit={self.memory_mb}",
+                "--threads=1",
+                f"--user={user}",
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+        )
+        with anyio.fail_after(10):  # it says nothing when ready: wait until it accepts
+            while True:
+                if self._proc.returncode is not None:
+                    err = b""
+                    if self._proc.stderr is not None:
+                        with contextlib.suppress(anyio.EndOfStream):
+                            err = await self._proc.stderr.receive()
+                    raise RuntimeError(f"memcached did not start: {err.decode(errors='replace')}")
+                try:
+                    stream = await anyio.connect_tcp("127.0.0.1", self.port)
+                except OSError:
+                    await anyio.sleep(0.02)
+                    continue
+                await stream.aclose()
+                return
+
+    async def stop(self) -> None:
+        if self._proc is not None:
+            proc, self._proc = self._proc, None
+            proc.kill()
+            with anyio.fail_after(10):
+                await proc.wait()
+            await proc.aclose()
+
+    async def restart(self) -> None:
+        """Kill it and start it again on the same port: every item is gone."""
+        await self.stop()
+        await self.start()
+
+
+@asynccontextmanager
+async def memcached_server() -> AsyncIterator[MemcachedServer]:
+    server = MemcachedServer()
     await server.start()
     try:
         yield server

@@ -35,6 +35,11 @@ def run(*args: str, timeout: float = 30) -> subprocess.CompletedProcess[str]:
             ["--backend", "redis", "--redis-url", f"redis://127.0.0.1:{free_port()}/0"],
             "unreachable",
         ),
+        (
+            ["--backend", "memcached", "--memcached-url", f"memcached://127.0.0.1:{free_port()}"],
+            "apt-get install memcached",
+        ),
+        (["--backend", "memcached", "--memcached-url", "redis://x"], "write memcached://HOST"),
     ],
 )
 def test_mistakes_are_one_line_and_exit_2(args: list[str], says: str) -> None:

@@ -1,5 +1,6 @@
-"""One behaviour suite for every Store: memory, sqlite (a file of the test's own) and
-redis (a real redis-server the test starts on a free port)."""
+"""One behaviour suite for every Store: memory, sqlite (a file of the test's own), redis
+(a real redis-server the test starts on a free port) and memcached (a real memcached the
+test starts on a free port, with a memory store for history and models)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from typing import Any
 
 import msgspec
 import pytest
+from knowledge.adapters.memcached_store import MemcachedStore
 from knowledge.adapters.memory import MemoryStore
 from knowledge.adapters.redis_store import RedisStore
 from knowledge.adapters.sqlite_store import SqliteStore
@@ -18,7 +20,7 @@ from knowledge.core import Retention, sha256
 from knowledge.errors import Conflict
 from rap_schemas import KbRecord, ModelMeta
 
-from services.knowledge.tests.servers import redis_server
+from services.knowledge.tests.servers import memcached_server, redis_server
 
 pytestmark = pytest.mark.anyio
 
@@ -27,7 +29,12 @@ RULES = [
     HistoryRule(pattern="aged/**", max_count=None, max_age_s=60.0),
     HistoryRule(pattern="**", max_count=100),
 ]
-KINDS = ["memory", "sqlite", pytest.param("redis", marks=pytest.mark.redis)]
+KINDS = [
+    "memory",
+    "sqlite",
+    pytest.param("redis", marks=pytest.mark.redis),
+    pytest.param("memcached", marks=pytest.mark.memcached),
+]
 
 
 async def make_store(kind: str, tmp_path: Path, stack: Any) -> Any:
@@ -36,9 +43,12 @@ async def make_store(kind: str, tmp_path: Path, stack: Any) -> Any:
         return MemoryStore(retention)
     if kind == "sqlite":
         store = await SqliteStore(str(tmp_path / "kb.sqlite3"), retention).open()
-    else:
+    elif kind == "redis":
         server = await stack.enter_async_context(redis_server(tmp_path))
         store = await RedisStore(server.url, "t", retention).open()
+    else:
+        cache = await stack.enter_async_context(memcached_server())
+        store = await MemcachedStore(cache.url, "t", MemoryStore(retention)).open()
     stack.push_async_callback(store.aclose)
     return store
 

@@ -429,12 +429,17 @@ def node_processes(
     if knowledge_node(plan) == node:
         kb = plan.knowledge
         argv = [PYTHON, "-m", "knowledge", "--system", sys_name, "--backend", kb.backend]
-        if kb.backend == "sqlite":
+        if kb.backend in ("sqlite", "memcached"):  # memcached: history and models there
             argv += ["--sqlite-path", _rel(paths.data_dir, kb.path or "knowledge.sqlite3")]
-        elif kb.backend == "redis":
+        if kb.backend == "redis":
             argv += [
                 "--redis-url",
                 resolve_url(kb.url or "redis://127.0.0.1:6379/0", plan, addresses),
+            ]
+        elif kb.backend == "memcached":
+            argv += [
+                "--memcached-url",
+                resolve_url(kb.url or "memcached://127.0.0.1:11211", plan, addresses),
             ]
         argv += ["--log-level", log_level]
         at = observed("knowledge", argv)

@@ -3,7 +3,8 @@
 Backends: ``memory`` (the default) keeps everything in this process and loses every
 write, acknowledged or not, when the service stops; ``sqlite`` (a file on this machine)
 and ``redis`` (shared, append-only recommended) keep acknowledged writes across
-restarts.
+restarts; ``memcached`` keeps the latest values in memcached and history, the key list
+and models in the SQLite file (which refills memcached after an eviction or a restart).
 """
 
 from __future__ import annotations
@@ -35,14 +36,15 @@ from rap_sdk.logs import LogContext, check_redis_url, open_file_log, publish_log
 from rap_sdk.metrics import KnowledgeServiceCollector, check_metrics_option, start_metrics
 from rap_sdk.peers import PeerWatch
 
+from .adapters.memcached_store import parse_url
 from .app import open_service
 from .config import HistoryRule, KnowledgeConfig
-from .errors import ServiceError
+from .errors import BadRequest, ServiceError
 
 __all__ = ["MEMORY_WARNING", "cli", "load_config", "main"]
 
 cli = typer.Typer(add_completion=False, help=__doc__, rich_markup_mode=None)
-Backend = Literal["memory", "sqlite", "redis"]
+Backend = Literal["memory", "sqlite", "redis", "memcached"]
 log = logging.getLogger("knowledge")
 
 MEMORY_WARNING = (
@@ -56,10 +58,18 @@ def main(
     system: Annotated[str, typer.Option(help="System name: serves rap/<system>/kb/**.")] = "rap",
     backend: Annotated[
         Backend,
-        typer.Option(help="memory (lost on restart), sqlite (a file) or redis (shared)."),
+        typer.Option(
+            help="memory (lost on restart), sqlite (a file), redis (shared) or memcached "
+            "(latest values in memcached, the rest in the SQLite file)."
+        ),
     ] = "memory",
-    sqlite_path: Annotated[str, typer.Option(help="SQLite file.")] = "knowledge.sqlite3",
+    sqlite_path: Annotated[
+        str, typer.Option(help="SQLite file (sqlite; memcached: history and models).")
+    ] = "knowledge.sqlite3",
     redis_url: Annotated[str, typer.Option(help="Redis URL.")] = "redis://127.0.0.1:6379/0",
+    memcached_url: Annotated[
+        str, typer.Option(help="memcached URL: memcached://HOST[:PORT].")
+    ] = "memcached://127.0.0.1:11211",
     listen: Annotated[list[str] | None, typer.Option(help="Zenoh listen endpoint.")] = None,
     connect: Annotated[list[str] | None, typer.Option(help="Zenoh endpoint to connect.")] = None,
     history_max: Annotated[int, typer.Option(help="Versions kept per key (>= 1).")] = 1000,
@@ -75,7 +85,8 @@ def main(
     """Serve knowledge for one system until SIGTERM or SIGINT.
 
     The memory backend (the default) loses every write, acknowledged or not, when the
-    service stops; sqlite and redis keep acknowledged writes.
+    service stops; sqlite, redis and memcached keep acknowledged writes (memcached: in
+    the SQLite file, which refills memcached).
 
     Example: python -m knowledge --system demo --backend sqlite --metrics 127.0.0.1:9465"""
     setup_logging(log_level)
@@ -92,8 +103,14 @@ def main(
             backend=backend,
             sqlite_path=sqlite_path,
             redis_url=redis_url,
+            memcached_url=memcached_url,
             history=[HistoryRule(max_count=history_max)],
         )
+    if config.backend == "memcached":
+        try:
+            parse_url(config.memcached_url)
+        except BadRequest as exc:
+            raise fail(str(exc)) from None
     zconf = ZenohConfig(
         listen=check_endpoints("--listen", listen) or ["tcp/127.0.0.1:0"],
         connect=check_endpoints("--connect", connect),

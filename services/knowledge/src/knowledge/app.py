@@ -11,6 +11,7 @@ from rap_sdk import Fabric
 from rap_sdk.knowledge import SERVICE_NODE
 from rap_sdk.runtime import refuse_running
 
+from .adapters.memcached_store import MemcachedStore
 from .adapters.memory import MemoryStore
 from .adapters.redis_store import RedisStore
 from .adapters.sqlite_store import SqliteStore
@@ -30,6 +31,18 @@ async def open_store(config: KnowledgeConfig) -> AsyncIterator[Store]:
         store = MemoryStore(retention)
     elif config.backend == "sqlite":
         store = await SqliteStore(config.sqlite_path, retention).open()
+    elif config.backend == "memcached":
+        # the latest values in memcached, everything else in SQLite; memcached is checked
+        # first, so that no file is made for a service that cannot start
+        inner = SqliteStore(config.sqlite_path, retention)
+        cached = MemcachedStore(config.memcached_url, config.system, inner)
+        await cached.open(retry_for=2.0)
+        try:
+            await inner.open()
+        except BaseException:
+            await cached.aclose()
+            raise
+        store = cached
     else:
         store = await RedisStore(config.redis_url, config.system, retention).open(retry_for=2.0)
     try:

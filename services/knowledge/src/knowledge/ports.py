@@ -1,5 +1,5 @@
 """What the knowledge service needs from a backend: one protocol, one contract suite
-(memory, sqlite, redis)."""
+(memory, sqlite, redis, memcached)."""
 
 from __future__ import annotations
 

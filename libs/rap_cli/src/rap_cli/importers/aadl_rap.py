@@ -185,7 +185,7 @@ def constraints(props: Props) -> dict[str, Any]:
 def knowledge(props: Props) -> KnowledgeSpec | None:
     """The root's ``RAP::Knowledge_*`` (None without ``RAP::Knowledge_Backend``)."""
     backend = rap_string(props, "Knowledge_Backend")
-    if backend not in ("memory", "sqlite", "redis"):
+    if backend not in ("memory", "sqlite", "redis", "memcached"):
         return None
     return KnowledgeSpec(
         backend=backend,  # type: ignore[arg-type]

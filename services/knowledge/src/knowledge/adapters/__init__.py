@@ -1,3 +1,3 @@
-"""One store per backend: memory, sqlite, redis (see :mod:`knowledge.ports`)."""
+"""One store per backend: memory, sqlite, redis, memcached (see :mod:`knowledge.ports`)."""
 
 __all__: list[str] = []
