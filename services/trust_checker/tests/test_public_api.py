@@ -77,6 +77,7 @@ def test_every_module_is_listed() -> None:
         "trust_checker.io",
         "trust_checker.io.auth",
         "trust_checker.io.codec",
+        "trust_checker.io.credentials",
         "trust_checker.io.fabric",
         "trust_checker.io.mqtt",
         "trust_checker.io.ports",

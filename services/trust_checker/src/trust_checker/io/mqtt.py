@@ -42,12 +42,10 @@ outputs of ticks that happen while disconnected are dropped and counted.
 from __future__ import annotations
 
 import logging
-import os
 import ssl
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import partial
-from pathlib import Path
 from typing import Final
 
 import aiomqtt
@@ -64,6 +62,7 @@ from rap_sdk.rejections import Rejections, Throttle
 from ..config import MqttConfig
 from .auth import SWAP_VERB, SignedSpecUpdate, outcome, spec_summary, update_body
 from .codec import CodecError, decode_payload, encode_value
+from .credentials import read_credentials
 from .ports import OutputLike
 from .session import Session, SwapRequest
 from .ticks import Arrival
@@ -98,44 +97,7 @@ class MqttCredentials:
 def mqtt_credentials(config: MqttConfig, env: Mapping[str, str] | None = None) -> MqttCredentials:
     """The password and TLS context ``config`` names, read now (files: call it in a worker
     thread from an event loop); :class:`rap_sdk.ConfigError` saying what is missing."""
-    password: str | None = None
-    if config.password_env:
-        value = (os.environ if env is None else env).get(config.password_env)
-        if value is None:
-            raise ConfigError(
-                f"MQTT password: ${config.password_env} is not set - export it before "
-                "starting the checker (the password never goes on the command line)"
-            )
-        password = value
-    elif config.password_file:
-        try:
-            text = Path(config.password_file).read_text(encoding="utf-8")
-        except (OSError, UnicodeDecodeError) as exc:
-            why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
-            raise ConfigError(
-                f"MQTT password file {config.password_file}: cannot read it ({why}) - give "
-                "a readable text file holding the password on its first line"
-            ) from None
-        password = text.splitlines()[0] if text else ""
-        if not password:
-            raise ConfigError(
-                f"MQTT password file {config.password_file}: its first line is empty - "
-                "write the password on it"
-            )
-    context = None
-    if config.secure:
-        try:
-            context = ssl.create_default_context(cafile=config.ca or None)
-            if config.cert:
-                context.load_cert_chain(config.cert, config.key)
-        except OSError as exc:  # ssl.SSLError is one
-            what = "--mqtt-cert/--mqtt-key" if config.cert else "--mqtt-ca"
-            raise ConfigError(
-                f"MQTT TLS: cannot load {config.ca or config.cert or 'the CAs'} "
-                f"({getattr(exc, 'strerror', None) or exc}) - check {what}: PEM files, the "
-                "key unencrypted and the certificate's"
-            ) from None
-    return MqttCredentials(password, context)
+    return MqttCredentials(*read_credentials("MQTT", "--mqtt", config, env))
 
 
 def _hint(exc: aiomqtt.MqttError) -> str:
