@@ -11,12 +11,15 @@ run by the test itself so that it can be stopped and started again on the same p
   acknowledges numbered frames, records what it gets and sends frames to every
   connected bridge.
 
+Every other protocol's outside lives in ``outside_<protocol>.py`` beside this file (a
+class ``Outside`` with the members of :class:`Outside` below, and ``require_server()``).
 The fabric side is a :class:`rap_sdk.MemoryFabric`; the tests are in
 ``test_contract.py``, parametrized over :data:`PROTOCOLS`.
 """
 
 from __future__ import annotations
 
+import importlib
 import os
 import subprocess
 from collections.abc import AsyncIterator, Callable
@@ -32,13 +35,15 @@ from anyio.streams.buffered import BufferedByteReceiveStream
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 from rap_bridges import Backoff, Bridge, BridgeSpec, Direction, Frame
+from rap_bridges.spec import PROTOCOLS as KNOWN_PROTOCOLS
 from rap_bridges.tcp import HEADER_ACK, HEADER_SENDER, HEADER_SEQ, encode_frame, read_frame
 from rap_schemas import Envelope, Message, keys
 from rap_sdk import InboxPolicy, MemoryFabric, Overflow, Sealer
 from rap_sdk.fabric import Fabric, free_port
 from rap_sdk.testing import require_binary, stop_process
 
-PROTOCOLS = ("mqtt", "tcp")
+PROTOCOLS = KNOWN_PROTOCOLS
+"""Every protocol with a bridge: the contract runs against each."""
 SYSTEM = "bridges"
 KEY = keys.data(SYSTEM, "reading")
 OUT_TOPIC = "contract/out"
@@ -352,21 +357,36 @@ class TcpOutside(_Received):
         await self.conns[-1].send(data)
 
 
+def _module(protocol: str) -> Any:
+    """The harness module of a protocol other than MQTT and TCP:
+    ``outside_<protocol>.py`` beside this file, with ``Outside`` (the class) and
+    ``require_server()``."""
+    return importlib.import_module(f"libs.rap_bridges.tests.outside_{protocol.replace('-', '_')}")
+
+
 def require_server(protocol: str) -> None:
     """Skip, or fail with ``RAP_REQUIRE_SERVICES=1``, when the server a protocol's
     outside needs is not installed (call it before any task group: a skip raised inside
     one reaches pytest wrapped in an exception group)."""
     if protocol == "mqtt":
         require_binary("mosquitto", hint="apt-get install mosquitto")
+    elif protocol != "tcp":
+        _module(protocol).require_server()
 
 
 OutsideFactory = Callable[[Path, TaskGroup], Any]
 OUTSIDES: dict[str, OutsideFactory] = {"mqtt": MqttOutside, "tcp": TcpOutside}
 
 
+def outside_factory(protocol: str) -> OutsideFactory:
+    if protocol not in OUTSIDES:
+        OUTSIDES[protocol] = _module(protocol).Outside
+    return OUTSIDES[protocol]
+
+
 @asynccontextmanager
 async def outside_of(protocol: str, directory: Path, tg: TaskGroup) -> AsyncIterator[Any]:
-    out = OUTSIDES[protocol](directory, tg)
+    out = outside_factory(protocol)(directory, tg)
     try:
         yield out
     finally:

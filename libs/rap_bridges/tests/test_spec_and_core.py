@@ -37,9 +37,9 @@ def test_a_good_spec_has_defaults() -> None:
         ({"url": "http://x:1"}, "scheme must be mqtt:// or mqtts://"),
         ({"url": "mqtt://"}, "has no host"),
         ({"url": "mqtt://u:pw@x:1"}, "holds credentials"),
-        ({"url": "mqtt://x:1/topic"}, "put the topic/queue in address"),
+        ({"url": "mqtt://x:1/topic"}, "put the topic, channel, queue or path in address"),
         ({"address": ""}, "needs an address"),
-        ({"serve": True}, "serve applies to tcp only"),
+        ({"serve": True}, "serve applies to tcp and websocket only"),
         ({"password_env": "PW"}, "a password needs a username"),
         ({"username": "u", "password_env": "A", "password_file": "f"}, "not both"),
         ({"cert": "c.pem"}, "cert and key go together"),
@@ -56,7 +56,7 @@ def test_decoding_names_the_field() -> None:
         decode_spec(b'{"protocol": "mqtt", "url": "mqtt://h:1", "address": "t", "qos": 3}')
     with pytest.raises(msgspec.ValidationError, match="unknown field"):
         decode_spec(b'{"protocol": "tcp", "url": "tcp://h:1", "topic": "t"}')
-    with pytest.raises(msgspec.ValidationError, match="tcp only"):
+    with pytest.raises(msgspec.ValidationError, match="tcp and websocket only"):
         decode_spec(b'{"protocol": "mqtt", "url": "mqtt://h:1", "address": "t", "serve": true}')
     with pytest.raises(msgspec.ValidationError, match=r"\$.buffer"):
         decode_spec(b'{"protocol": "tcp", "url": "tcp://h:1", "buffer": 0}')

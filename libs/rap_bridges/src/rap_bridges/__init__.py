@@ -1,7 +1,8 @@
 """rap_bridges: ports of a RAP model bound to protocols outside the Zenoh fabric.
 
-A :class:`Bridge` runs one port's pump between the fabric and a :class:`Link` (MQTT in
-:mod:`rap_bridges.mqtt`, TCP frames in :mod:`rap_bridges.tcp`), as a
+A :class:`Bridge` runs one port's pump between the fabric and a :class:`Link` (MQTT,
+TCP frames, Redis pub/sub and streams, AMQP, WebSocket, NATS, DDS for ROS 2, Kafka: a
+module of this package each), as a
 :class:`BridgeSpec` says: reconnect with backoff and jitter, a bounded buffer with a
 declared overflow policy, typed decoding at the boundary, and everything counted
 (:class:`BridgeStats`, exported by :class:`rap_bridges.metrics.BridgeCollector`).
@@ -19,6 +20,7 @@ from .core import (
     Deliver,
     Direction,
     Frame,
+    FrameRefused,
     Link,
     LinkContext,
     LinkDown,
@@ -41,6 +43,7 @@ __all__ = [
     "Direction",
     "Format",
     "Frame",
+    "FrameRefused",
     "Link",
     "LinkContext",
     "LinkDown",

