@@ -104,6 +104,12 @@ def test_a_minimal_plan_takes_the_defaults() -> None:
             ["knowledge.url 'redis://x' is not a memcached URL", "memcached://HOST[:PORT]"],
         ),
         (
+            "backend: memory",
+            "backend: kafka\n  url: redis://x",
+            "p.yaml:9:8",
+            ["knowledge.url 'redis://x' is not a kafka URL", "kafka://HOST[:PORT]"],
+        ),
+        (
             "    stage: analyse",
             "    stage: analyze",
             "p.yaml:17:12",

@@ -74,3 +74,14 @@ def test_memcached_knowledge_gets_its_url_and_its_sqlite_file(tmp_path: Path) ->
     assert argv[argv.index("--backend") + 1] == "memcached"
     assert argv[argv.index("--memcached-url") + 1] == "memcached://10.0.0.2"
     assert argv[argv.index("--sqlite-path") + 1].endswith("knowledge.sqlite3")
+
+
+def test_kafka_knowledge_gets_its_broker_and_its_sqlite_file(tmp_path: Path) -> None:
+    kb_spec = KnowledgeSpec(backend="kafka", node="companion", url="kafka://companion:9092")
+    doc = PlanDocument.from_plan(msgspec.structs.replace(PLAN, knowledge=kb_spec))
+    paths = Paths.local(tmp_path / "model.yaml", tmp_path / "run", "companion")
+    processes = node_processes(doc, "companion", paths=paths, addresses={"companion": "10.0.0.2"})
+    argv = next(p for p in processes if p.name == "knowledge").argv
+    assert argv[argv.index("--backend") + 1] == "kafka"
+    assert argv[argv.index("--kafka-url") + 1] == "kafka://10.0.0.2:9092"
+    assert argv[argv.index("--sqlite-path") + 1].endswith("knowledge.sqlite3")

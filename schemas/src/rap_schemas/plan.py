@@ -333,18 +333,21 @@ class TrustSpec(_Plan, frozen=True, kw_only=True):
 class KnowledgeSpec(_Plan, frozen=True, kw_only=True):
     """Where knowledge lives and how it is stored."""
 
-    backend: Literal["memory", "sqlite", "redis", "memcached"] = "memory"
-    """`memory` (lost on restart), `sqlite` (a file), `redis`, or `memcached` (the
-    latest values in memcached; history, the key list and models in the SQLite file)."""
+    backend: Literal["memory", "sqlite", "redis", "memcached", "kafka"] = "memory"
+    """`memory` (lost on restart), `sqlite` (a file), `redis`, `memcached` (the
+    latest values in memcached; history, the key list and models in the SQLite file), or
+    `kafka` (everything in the SQLite file, and every record stored appended to a Kafka
+    topic: the knowledge stream)."""
     node: Name | None = None
     """The compute node that hosts the knowledge service."""
     path: str | None = None
-    """The SQLite file (``backend: sqlite``, and ``backend: memcached`` for history and
-    models)."""
+    """The SQLite file (``backend: sqlite`` and ``kafka``, and ``backend: memcached`` for
+    history and models)."""
     url: str | None = None
     """The Redis URL (``backend: redis``, e.g. ``redis://127.0.0.1:6379/0``) or the
     memcached URL (``backend: memcached``, ``memcached://HOST[:PORT]``, by default
-    ``memcached://127.0.0.1:11211``)."""
+    ``memcached://127.0.0.1:11211``) or the Kafka broker (``backend: kafka``,
+    ``kafka://HOST[:PORT]``, by default ``kafka://127.0.0.1:9092``)."""
 
 
 class ComponentSpec(_Plan, frozen=True, kw_only=True):
@@ -527,21 +530,26 @@ def plan_findings(plan: DeploymentPlan) -> Iterator[Finding]:
             f"define; use one of {listed} or add it under compute_nodes",
             False,
         )
-    for field, backends in (("path", ("sqlite", "memcached")), ("url", ("redis", "memcached"))):
+    for field, backends in (
+        ("path", ("sqlite", "memcached", "kafka")),
+        ("url", ("redis", "memcached", "kafka")),
+    ):
         if getattr(kb, field) is not None and kb.backend not in backends:
             yield (
                 ("knowledge", field),
-                f"knowledge.{field} is for the {backends[0]} backend (and {backends[1]}), but "
-                f"the backend is {kb.backend!r}; set backend: {backends[0]} or remove {field}",
+                f"knowledge.{field} is for the {backends[0]} backend (and "
+                f"{', '.join(backends[1:])}), but the backend is {kb.backend!r}; set "
+                f"backend: {backends[0]} or remove {field}",
                 False,
             )
-    if kb.backend == "memcached" and kb.url is not None and not kb.url.startswith("memcached://"):
-        yield (
-            ("knowledge", "url"),
-            f"knowledge.url {kb.url!r} is not a memcached URL; write "
-            "memcached://HOST[:PORT], e.g. memcached://127.0.0.1:11211",
-            False,
-        )
+    for backend, port in (("memcached", 11211), ("kafka", 9092)):
+        if kb.backend == backend and kb.url is not None and not kb.url.startswith(f"{backend}://"):
+            yield (
+                ("knowledge", "url"),
+                f"knowledge.url {kb.url!r} is not a {backend} URL; write "
+                f"{backend}://HOST[:PORT], e.g. {backend}://127.0.0.1:{port}",
+                False,
+            )
     limit = plan.fabric.max_sample_bytes
     if not _MIN_SAMPLE_LIMIT <= limit <= _MAX_SAMPLE_LIMIT:
         low = limit < _MIN_SAMPLE_LIMIT

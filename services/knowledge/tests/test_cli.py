@@ -40,6 +40,8 @@ def run(*args: str, timeout: float = 30) -> subprocess.CompletedProcess[str]:
             "apt-get install memcached",
         ),
         (["--backend", "memcached", "--memcached-url", "redis://x"], "write memcached://HOST"),
+        (["--backend", "kafka", "--kafka-url", "redis://x"], "write kafka://HOST"),
+        (["--backend", "kafka", "--kafka-topic", "a/b"], "Kafka topic 'a/b'"),
     ],
 )
 def test_mistakes_are_one_line_and_exit_2(args: list[str], says: str) -> None:

@@ -1,6 +1,8 @@
 """One behaviour suite for every Store: memory, sqlite (a file of the test's own), redis
-(a real redis-server the test starts on a free port) and memcached (a real memcached the
-test starts on a free port, with a memory store for history and models)."""
+(a real redis-server the test starts on a free port), memcached (a real memcached the
+test starts on a free port, with a memory store for history and models) and kafka (a
+SQLite store with its outbox, sent to a real Tansu broker the test starts on a free port;
+after each test the outbox must have drained to the broker)."""
 
 from __future__ import annotations
 
@@ -9,8 +11,10 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
+import anyio
 import msgspec
 import pytest
+from knowledge.adapters.kafka_store import KafkaStore
 from knowledge.adapters.memcached_store import MemcachedStore
 from knowledge.adapters.memory import MemoryStore
 from knowledge.adapters.redis_store import RedisStore
@@ -19,6 +23,7 @@ from knowledge.config import HistoryRule
 from knowledge.core import Retention, sha256
 from knowledge.errors import Conflict
 from rap_schemas import KbRecord, ModelMeta
+from rap_sdk.testing import TansuServer
 
 from services.knowledge.tests.servers import memcached_server, redis_server
 
@@ -34,6 +39,7 @@ KINDS = [
     "sqlite",
     pytest.param("redis", marks=pytest.mark.redis),
     pytest.param("memcached", marks=pytest.mark.memcached),
+    pytest.param("kafka", marks=pytest.mark.kafka),
 ]
 
 
@@ -46,6 +52,14 @@ async def make_store(kind: str, tmp_path: Path, stack: Any) -> Any:
     elif kind == "redis":
         server = await stack.enter_async_context(redis_server(tmp_path))
         store = await RedisStore(server.url, "t", retention).open()
+    elif kind == "kafka":
+        broker = TansuServer()
+        await broker.start()
+        stack.push_async_callback(broker.stop)
+        inner = await SqliteStore(str(tmp_path / "kb.sqlite3"), retention, outbox=True).open()
+        return await stack.enter_async_context(
+            KafkaStore(f"kafka://{broker.bootstrap}", "t", inner)
+        )
     else:
         cache = await stack.enter_async_context(memcached_server())
         store = await MemcachedStore(cache.url, "t", MemoryStore(retention)).open()
@@ -58,7 +72,11 @@ async def store(request: pytest.FixtureRequest, tmp_path: Path) -> AsyncIterator
     from contextlib import AsyncExitStack
 
     async with AsyncExitStack() as stack:
-        yield await make_store(request.param, tmp_path, stack)
+        store = await make_store(request.param, tmp_path, stack)
+        yield store
+        if isinstance(store, KafkaStore):  # every record stored reached the broker
+            with anyio.fail_after(20):
+                await store.wait_sent()
 
 
 def rec(

@@ -429,7 +429,7 @@ def node_processes(
     if knowledge_node(plan) == node:
         kb = plan.knowledge
         argv = [PYTHON, "-m", "knowledge", "--system", sys_name, "--backend", kb.backend]
-        if kb.backend in ("sqlite", "memcached"):  # memcached: history and models there
+        if kb.backend in ("sqlite", "memcached", "kafka"):  # memcached: history and models
             argv += ["--sqlite-path", _rel(paths.data_dir, kb.path or "knowledge.sqlite3")]
         if kb.backend == "redis":
             argv += [
@@ -440,6 +440,11 @@ def node_processes(
             argv += [
                 "--memcached-url",
                 resolve_url(kb.url or "memcached://127.0.0.1:11211", plan, addresses),
+            ]
+        elif kb.backend == "kafka":
+            argv += [
+                "--kafka-url",
+                resolve_url(kb.url or "kafka://127.0.0.1:9092", plan, addresses),
             ]
         argv += ["--log-level", log_level]
         at = observed("knowledge", argv)

@@ -4,7 +4,10 @@ Backends: ``memory`` (the default) keeps everything in this process and loses ev
 write, acknowledged or not, when the service stops; ``sqlite`` (a file on this machine)
 and ``redis`` (shared, append-only recommended) keep acknowledged writes across
 restarts; ``memcached`` keeps the latest values in memcached and history, the key list
-and models in the SQLite file (which refills memcached after an eviction or a restart).
+and models in the SQLite file (which refills memcached after an eviction or a restart);
+``kafka`` keeps everything in the SQLite file and appends every record stored to a Kafka
+topic (the knowledge stream, at least once, kept in the file's outbox while the broker is
+away).
 """
 
 from __future__ import annotations
@@ -36,6 +39,7 @@ from rap_sdk.logs import LogContext, check_redis_url, open_file_log, publish_log
 from rap_sdk.metrics import KnowledgeServiceCollector, check_metrics_option, start_metrics
 from rap_sdk.peers import PeerWatch
 
+from .adapters import kafka_store
 from .adapters.memcached_store import parse_url
 from .app import open_service
 from .config import HistoryRule, KnowledgeConfig
@@ -44,7 +48,7 @@ from .errors import BadRequest, ServiceError
 __all__ = ["MEMORY_WARNING", "cli", "load_config", "main"]
 
 cli = typer.Typer(add_completion=False, help=__doc__, rich_markup_mode=None)
-Backend = Literal["memory", "sqlite", "redis", "memcached"]
+Backend = Literal["memory", "sqlite", "redis", "memcached", "kafka"]
 log = logging.getLogger("knowledge")
 
 MEMORY_WARNING = (
@@ -59,17 +63,24 @@ def main(
     backend: Annotated[
         Backend,
         typer.Option(
-            help="memory (lost on restart), sqlite (a file), redis (shared) or memcached "
-            "(latest values in memcached, the rest in the SQLite file)."
+            help="memory (lost on restart), sqlite (a file), redis (shared), memcached "
+            "(latest values in memcached, the rest in the SQLite file) or kafka (the SQLite "
+            "file, and every record stored appended to a Kafka topic)."
         ),
     ] = "memory",
     sqlite_path: Annotated[
-        str, typer.Option(help="SQLite file (sqlite; memcached: history and models).")
+        str, typer.Option(help="SQLite file (sqlite, kafka; memcached: history and models).")
     ] = "knowledge.sqlite3",
     redis_url: Annotated[str, typer.Option(help="Redis URL.")] = "redis://127.0.0.1:6379/0",
     memcached_url: Annotated[
         str, typer.Option(help="memcached URL: memcached://HOST[:PORT].")
     ] = "memcached://127.0.0.1:11211",
+    kafka_url: Annotated[
+        str, typer.Option(help="Kafka broker (kafka): kafka://HOST[:PORT].")
+    ] = "kafka://127.0.0.1:9092",
+    kafka_topic: Annotated[
+        str | None, typer.Option(help="The knowledge stream's topic (default rap.<system>.kb).")
+    ] = None,
     listen: Annotated[list[str] | None, typer.Option(help="Zenoh listen endpoint.")] = None,
     connect: Annotated[list[str] | None, typer.Option(help="Zenoh endpoint to connect.")] = None,
     history_max: Annotated[int, typer.Option(help="Versions kept per key (>= 1).")] = 1000,
@@ -85,8 +96,9 @@ def main(
     """Serve knowledge for one system until SIGTERM or SIGINT.
 
     The memory backend (the default) loses every write, acknowledged or not, when the
-    service stops; sqlite, redis and memcached keep acknowledged writes (memcached: in
-    the SQLite file, which refills memcached).
+    service stops; sqlite, redis, memcached and kafka keep acknowledged writes
+    (memcached: in the SQLite file, which refills memcached; kafka: in the SQLite file,
+    which also sends each to the Kafka topic).
 
     Example: python -m knowledge --system demo --backend sqlite --metrics 127.0.0.1:9465"""
     setup_logging(log_level)
@@ -104,13 +116,18 @@ def main(
             sqlite_path=sqlite_path,
             redis_url=redis_url,
             memcached_url=memcached_url,
+            kafka_url=kafka_url,
+            kafka_topic=kafka_topic,
             history=[HistoryRule(max_count=history_max)],
         )
-    if config.backend == "memcached":
-        try:
+    try:
+        if config.backend == "memcached":
             parse_url(config.memcached_url)
-        except BadRequest as exc:
-            raise fail(str(exc)) from None
+        elif config.backend == "kafka":
+            kafka_store.parse_url(config.kafka_url)
+            kafka_store.check_topic(config.kafka_topic or kafka_store.default_topic(config.system))
+    except BadRequest as exc:
+        raise fail(str(exc)) from None
     zconf = ZenohConfig(
         listen=check_endpoints("--listen", listen) or ["tcp/127.0.0.1:0"],
         connect=check_endpoints("--connect", connect),

@@ -11,6 +11,7 @@ from rap_sdk import Fabric
 from rap_sdk.knowledge import SERVICE_NODE
 from rap_sdk.runtime import refuse_running
 
+from .adapters.kafka_store import KafkaStore
 from .adapters.memcached_store import MemcachedStore
 from .adapters.memory import MemoryStore
 from .adapters.redis_store import RedisStore
@@ -26,6 +27,13 @@ __all__ = ["open_service", "open_store"]
 @asynccontextmanager
 async def open_store(config: KnowledgeConfig) -> AsyncIterator[Store]:
     retention = Retention(config.history)
+    if config.backend == "kafka":  # a task of its own sends the stream: a context
+        inner = SqliteStore(config.sqlite_path, retention, outbox=True)
+        stream = KafkaStore(config.kafka_url, config.system, inner, topic=config.kafka_topic)
+        await inner.open()  # after the URL and topic were checked
+        async with stream:
+            yield stream
+        return
     store: Store
     if config.backend == "memory":
         store = MemoryStore(retention)

@@ -19,12 +19,17 @@ class HistoryRule(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
 
 class KnowledgeConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     system: str = "rap"
-    backend: Literal["memory", "sqlite", "redis", "memcached"] = "memory"
+    backend: Literal["memory", "sqlite", "redis", "memcached", "kafka"] = "memory"
     sqlite_path: str = "knowledge.sqlite3"
-    """The SQLite file (``sqlite``; with ``memcached``: history, the key list, models)."""
+    """The SQLite file (``sqlite``; with ``memcached``: history, the key list, models;
+    with ``kafka``: everything, and the outbox of the knowledge stream)."""
     redis_url: str = "redis://127.0.0.1:6379/0"
     memcached_url: str = "memcached://127.0.0.1:11211"
     """memcached (``memcached``: the latest value of each key)."""
+    kafka_url: str = "kafka://127.0.0.1:9092"
+    """The Kafka broker (``kafka``: every record stored is appended to ``kafka_topic``)."""
+    kafka_topic: str | None = None
+    """The knowledge stream's topic (None: ``rap.<system>.kb``)."""
     history: list[HistoryRule] = msgspec.field(default_factory=lambda: [HistoryRule()])
     """First matching rule wins."""
     max_value_bytes: int = 1 << 20

@@ -739,7 +739,7 @@ def _check_version(req: Requirement, *, parent: str) -> None:
 def _data_dirs(plan: DeploymentPlan) -> list[str]:
     """The folders named volumes cover, created in the image for the non-root user."""
     dirs = [DATA_DIR]
-    if plan.knowledge.backend in ("sqlite", "memcached"):
+    if plan.knowledge.backend in ("sqlite", "memcached", "kafka"):
         path = plan.knowledge.path or "knowledge.sqlite3"
         full = path if path.startswith("/") else posixpath.join(DATA_DIR, path)
         dirs.append(_volume_for(posixpath.normpath(full)))

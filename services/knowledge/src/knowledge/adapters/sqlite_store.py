@@ -3,6 +3,12 @@ acknowledged to a client survives a crash of the service (kill -9) and a restart
 
 sqlite3 blocks, so every call runs on one worker thread (a limiter of 1 also serialises
 them); the event loop never waits on the disk.
+
+With ``outbox=True`` every record that joins the store is also written, in the same
+transaction, to an ``outbox`` table numbered in commit order: what a store built on this
+one (the Kafka knowledge stream, :mod:`knowledge.adapters.kafka_store`) must still pass
+on, kept across a crash. It takes rows with :meth:`SqliteStore.outbox_take` and deletes
+them with :meth:`SqliteStore.outbox_done` once passed on.
 """
 
 from __future__ import annotations
@@ -40,6 +46,11 @@ CREATE TABLE IF NOT EXISTS models (
     PRIMARY KEY (name, version));
 CREATE TABLE IF NOT EXISTS pins (name TEXT PRIMARY KEY, version INTEGER NOT NULL);
 """
+_OUTBOX = """
+CREATE TABLE IF NOT EXISTS outbox (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT, key TEXT NOT NULL, version INTEGER NOT NULL,
+    writer TEXT NOT NULL, ts INTEGER NOT NULL, deleted INTEGER NOT NULL, value BLOB NOT NULL);
+"""
 
 _COLS = "key, version, writer, ts, deleted, value"
 
@@ -55,9 +66,10 @@ def _vals(rec: KbRecord) -> tuple[Any, ...]:
 
 
 class SqliteStore:
-    def __init__(self, path: str, retention: Retention) -> None:
+    def __init__(self, path: str, retention: Retention, *, outbox: bool = False) -> None:
         self._path = path
         self._retention = retention
+        self._outbox = outbox
         self._limiter = anyio.CapacityLimiter(1)
         self._conn: sqlite3.Connection | None = None
 
@@ -77,7 +89,7 @@ class SqliteStore:
         conn = sqlite3.connect(self._path, check_same_thread=False, isolation_level=None)
         conn.execute("PRAGMA journal_mode=WAL")
         conn.execute("PRAGMA synchronous=FULL")
-        conn.executescript(_SCHEMA)
+        conn.executescript(_SCHEMA + (_OUTBOX if self._outbox else ""))
         return conn
 
     @property
@@ -114,7 +126,11 @@ class SqliteStore:
                 live = cur_version if cur and not cur[2] else 0
                 if live != expect:
                     raise Conflict(rec.key, expect, live)
-            db.execute(f"INSERT OR IGNORE INTO records ({_COLS}) VALUES (?,?,?,?,?,?)", _vals(rec))
+            added = db.execute(
+                f"INSERT OR IGNORE INTO records ({_COLS}) VALUES (?,?,?,?,?,?)", _vals(rec)
+            ).rowcount
+            if added and self._outbox:
+                db.execute(f"INSERT INTO outbox ({_COLS}) VALUES (?,?,?,?,?,?)", _vals(rec))
             self._trim(db, rec.key)
             latest = rec.version > cur_version
             if latest:
@@ -140,6 +156,29 @@ class SqliteStore:
                 "DELETE FROM records WHERE key = ? AND ts < ?",
                 (key, time.time_ns() - limit.max_age_ns),
             )
+
+    async def outbox_take(self, limit: int) -> list[tuple[int, KbRecord]]:
+        """The oldest ``limit`` rows of the outbox (``outbox=True``): (number, record)."""
+        rows = await self._run(
+            lambda: self._db.execute(
+                f"SELECT seq, {_COLS} FROM outbox ORDER BY seq LIMIT ?", (limit,)
+            ).fetchall()
+        )
+        return [(r[0], _row(r[1:])) for r in rows]
+
+    async def outbox_done(self, upto: int) -> None:
+        """Delete the outbox's rows up to number ``upto``: passed on."""
+
+        def done() -> None:
+            with self._db:
+                self._db.execute("DELETE FROM outbox WHERE seq <= ?", (upto,))
+
+        await self._run(done)
+
+    async def outbox_size(self) -> int:
+        """Rows waiting in the outbox."""
+        row = await self._run(lambda: self._db.execute("SELECT count(*) FROM outbox").fetchone())
+        return int(row[0])
 
     async def get(self, key: str) -> KbRecord | None:
         row = await self._run(
