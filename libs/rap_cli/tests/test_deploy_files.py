@@ -574,3 +574,35 @@ def test_with_tls_each_router_presents_its_nodes_certificate(
         assert tls["enable_mtls"] is True
         linked = conf["listen"]["endpoints"] + conf["connect"]["endpoints"]
         assert any(e.startswith("tls/") for e in linked), linked
+
+
+def test_a_nodes_bridges_are_a_service_with_their_ports_and_passwords(
+    tmp_path: Path, compose_schema: dict[str, Any]
+) -> None:
+    data = yaml.safe_load(LIDAR.read_text())
+    ports = data["components"]["executor"]["ports"]
+    ports["spin_config"]["bridge"] = {
+        "protocol": "mqtt",
+        "url": "mqtts://broker.example:8883",
+        "address": "robot/spin_config",
+        "format": "json",
+        "username": "robot",
+        "password_env": "ROBOT_MQTT_PASSWORD",
+    }
+    data["components"]["monitor"]["ports"]["scan"]["bridge"] = {
+        "protocol": "tcp",
+        "url": "tcp://0.0.0.0:9100",
+        "serve": True,
+        "format": "envelope",
+    }
+    doc = parse_plan(yaml.safe_dump(data, sort_keys=False), str(LIDAR))
+    files = deploy_files(doc, package="lidar_occlusion")
+    root = _write(files, tmp_path)
+    _check_compose(compose_schema, files, root)
+    services = _compose(files, "robot")["services"]
+    bridges = services["bridges"]
+    assert bridges["command"][:3] == ["python", "-m", "rap_cli.bridges"]
+    assert bridges["ports"] == ["9100:9100"]  # the serving TCP bridge
+    # the password comes from the host's environment, never written into the file
+    assert bridges["environment"]["ROBOT_MQTT_PASSWORD"] == "${ROBOT_MQTT_PASSWORD}"
+    assert "bridges" not in _compose(files, "edge")["services"]  # its ports have none

@@ -5,7 +5,8 @@
 consumer (a warning), the types on both ends of a connection agree, every port, message
 and field type names something that exists, no two names differ only in case, every
 knowledge key read is written somewhere, and no plan reaches an execute stage except
-through a legitimate stage. ``rap check`` reports both kinds with their lines.
+through a legitimate stage, and every bridge carries one direction of a typed port.
+``rap check`` reports both kinds with their lines.
 
 Field types (:func:`parse_type`): ``bool``, ``int``, ``int8`` .. ``int64``, ``uint8`` ..
 ``uint64``, ``float``, ``float32``, ``float64``, ``str``, ``bytes``, a message or
@@ -230,7 +231,33 @@ def model_findings(plan: DeploymentPlan) -> list[ModelFinding]:
     found += _knowledge_findings(plan)
     found += _gate_findings(plan)
     found += _mode_findings(plan)
+    found += _bridge_findings(plan)
     return found
+
+
+def _bridge_findings(plan: DeploymentPlan) -> Iterator[ModelFinding]:
+    """A bridge carries one direction of a port that says what it carries."""
+    for cname, comp in plan.components.items():
+        for pname, port in comp.ports.items():
+            spec = port.bridge
+            if spec is None:
+                continue
+            loc = ("components", cname, "ports", pname, "bridge")
+            if port.direction == "in-out":
+                yield ModelFinding(
+                    loc,
+                    "error",
+                    f"port {cname}.{pname} is in-out, and a bridge carries one direction "
+                    "- split it into an 'in' and an 'out' port, each with its bridge",
+                    key=True,
+                )
+            if spec.format != "envelope" and port.type is None:
+                yield ModelFinding(
+                    (*loc, "format"),
+                    "error",
+                    f"port {cname}.{pname}: format {spec.format} needs the message the port "
+                    "carries - give the port a type, or use format: envelope",
+                )
 
 
 def _mode_findings(plan: DeploymentPlan) -> Iterator[ModelFinding]:

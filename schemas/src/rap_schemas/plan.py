@@ -36,6 +36,7 @@ from typing import Annotated, Any, Literal
 import msgspec
 
 from . import keys
+from .bridge import BridgeSpec
 from .limits import MAX_MESSAGE_BYTES, MAX_YAML_BYTES
 from .maplek import Stage
 from .yamlconf import (
@@ -184,6 +185,13 @@ class PortSpec(_Plan, frozen=True, kw_only=True):
     topic: str | None = None
     """The fabric name it uses (an event name or a data topic); ports of the same kind
     family on the same topic are connected without a ``connections:`` entry."""
+    bridge: BridgeSpec | None = None
+    """Binds the port to a protocol outside the fabric (MQTT, TCP, Redis, AMQP,
+    WebSocket, NATS, Kafka, DDS for ROS 2): ``rap up`` runs the bridge on the
+    component's compute node. A port of a component RAP runs is mirrored out (``out``)
+    or fed from outside (``in``); a port of an ``external`` component with no ``run:``
+    lives on the protocol, so its ``out`` messages come in. Not for ``in-out`` ports.
+    See docs/bridges.md."""
     origin: str | None = None
     """What it was imported from (the construct of a design)."""
     properties: dict[str, str] = {}

@@ -29,6 +29,8 @@ may (ingress, at its router):
   ``status`` verb of every component, serve its ``trace`` verb.
 - **a trust checker**: subscribe to the whole system, publish on ``trust/**``, serve its
   ``swap`` verb (which also checks that the caller is an operator).
+- **a node's bridges** (``<node>.bridges``): publish on the keys of the ports whose
+  messages come in from outside, subscribe to those whose messages go out, nothing else.
 - everyone: watch and query liveliness.
 
 Only operators may call admin verbs (other than the manager's status polls) or write
@@ -83,8 +85,8 @@ class Grant:
 
     identity: str
     kind: str
-    """``router``, ``operator``, ``knowledge``, ``manager``, ``runner``, ``trust`` or
-    ``component``."""
+    """``router``, ``operator``, ``knowledge``, ``manager``, ``runner``, ``trust``,
+    ``bridges`` or ``component``."""
     node: str = ""
     components: tuple[str, ...] = ()
     """The components it acts for."""
@@ -147,6 +149,8 @@ def process_grants(plan: DeploymentPlan, *, manager: bool = True) -> dict[str, G
     """Every identity of ``plan`` and what it may send: the routers, each RAP process of
     each compute node (as ``rap up`` runs them; ``manager``: with the adaptation
     manager beside knowledge) and the operators."""
+    from .bridges import PROCESS, bridges_on
+
     s = plan.system
     everything = keys.system_pattern(s)
     out: dict[str, Grant] = {}
@@ -191,6 +195,13 @@ def process_grants(plan: DeploymentPlan, *, manager: bool = True) -> dict[str, G
                 )
                 g.allow(["liveliness_token"], keys.alive(s, name))
                 out[g.identity] = g
+        bridged = bridges_on(plan, node)
+        if bridged:
+            g = Grant(process_identity(node, PROCESS), "bridges", node)
+            for b in bridged:  # in: it publishes what comes from outside; out: it listens
+                g.allow(["put"] if b.direction == "in" else ["declare_subscriber"], b.key)
+            g.allow(["put"], keys.log(s, f"{PROCESS}-{node}"))
+            out[g.identity] = g
         for name, comp in plan.components_on(node).items():
             if comp.run:
                 g = Grant(process_identity(node, name), "component", node, (name,))

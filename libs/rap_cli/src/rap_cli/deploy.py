@@ -76,7 +76,7 @@ AS_ENV = "RAP_AS"
 """A process's identity (its certificate's common name): ``<node>.<process>``."""
 """The compute node a process runs on (``rap_sdk.runtime.NODE_ENV``)."""
 
-Role = Literal["router", "knowledge", "manager", "runner", "trust", "component"]
+Role = Literal["router", "knowledge", "manager", "runner", "trust", "bridges", "component"]
 
 _HOST = re.compile(r"^(?P<proto>[a-z][a-z0-9+\-]*)/(?P<host>\[[^\]]*\]|[^:/\[]+)(?P<rest>.*)$")
 
@@ -467,6 +467,16 @@ def node_processes(
             argv += ["--fabric", sys_name, "--node", f"trust-{stem}", "--log-level", log_level]
             at = observed(f"trust-{stem}", argv)
             out.append(ProcessSpec(f"trust-{stem}", "trust", tuple(argv), client, spec, at))
+    if any(
+        p.bridge is not None and p.direction != "in-out"
+        for c in plan.components_on(node).values()
+        for p in c.ports.values()
+    ):
+        argv = [PYTHON, "-m", "rap_cli.bridges", paths.model, "--node", node]
+        argv += ["--system", sys_name, "--log-level", log_level]
+        at = observed("bridges", argv)
+        about = "the bridges of its components' ports (docs/bridges.md)"
+        out.append(ProcessSpec("bridges", "bridges", tuple(argv), client, about, at))
     for name, comp in plan.components_on(node).items():
         if not comp.run:
             continue

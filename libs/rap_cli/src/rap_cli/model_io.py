@@ -15,7 +15,6 @@ from pathlib import Path
 from typing import Any
 
 import jsonschema
-import msgspec
 from rap_schemas import DeploymentPlan
 from rap_schemas.export import PLAN_SCHEMA, render
 from rap_schemas.limits import MAX_YAML_BYTES
@@ -78,10 +77,12 @@ def check_model_text(text: str, source: str = "<model>") -> CheckedModel:
     if schema_errors:
         out.diagnostics = sort_diagnostics(out.diagnostics)
         return out
-    try:
-        plan = msgspec.convert(document.data, type=DeploymentPlan, strict=True)
-    except msgspec.ValidationError as exc:  # what the schema cannot say (rare)
-        out.diagnostics.append(Diagnostic(source, 1, 1, "error", f"{exc} - fix that field"))
+    try:  # what the schema cannot say (a bridge's URL, say): at the field's line
+        plan = document.convert(DeploymentPlan)
+    except PlanError as exc:
+        line, col = exc.line or 1, exc.column or 1
+        text = str(exc).removeprefix(f"{source}:{line}:{col}: ")
+        out.diagnostics.append(Diagnostic(source, line, col, "error", text))
         return out
     out.plan = plan
     for loc, problem, key in plan_findings(plan):
@@ -115,7 +116,25 @@ def _error_order(err: jsonschema.ValidationError) -> tuple[str, ...]:
     return tuple(str(p) for p in err.absolute_path)
 
 
+def _optional_branch(err: jsonschema.ValidationError) -> jsonschema.ValidationError | None:
+    """For a value that fits neither ``null`` nor the one other form of an optional
+    field (``bridge: {...}``): the error inside that form, which says what is wrong."""
+    options: Any = err.validator_value
+    if err.instance is None or not isinstance(options, list) or len(options) != 2:
+        return None
+    nulls = [i for i, o in enumerate(options) if isinstance(o, dict) and o.get("type") == "null"]
+    if len(nulls) != 1:
+        return None
+    other = 1 - nulls[0]
+    inner = [e for e in err.context or () if e.schema_path and e.schema_path[0] == other]
+    return jsonschema.exceptions.best_match(inner) if inner else None
+
+
 def _schema_diagnostic(document: YamlDocument, err: jsonschema.ValidationError) -> Diagnostic:
+    if err.validator == "anyOf":
+        inner = _optional_branch(err)
+        if inner is not None:
+            return _schema_diagnostic(document, inner)
     loc = list(err.absolute_path)
     key = False
     message = err.message

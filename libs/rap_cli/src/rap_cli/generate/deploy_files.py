@@ -100,6 +100,7 @@ RAP_DISTRIBUTIONS = (
     "rap-trust-checker",
     "rap-sim-world",
     "rap-adaptation-manager",
+    "rap-bridges",
 )
 """RAP's distributions the image installs (from ``deploy/wheels``: they are not on PyPI)."""
 
@@ -475,6 +476,25 @@ def _app_service(
     return service
 
 
+def _bridge_service(service: dict[str, Any], plan: DeploymentPlan, node: str) -> None:
+    """What a node's bridges need of their container: the ports its serving bridges
+    listen on published, and the variables holding passwords passed through from the
+    host's environment (``${VAR}``, never written into the file)."""
+    from ..bridges import bridges_on
+
+    env = dict(service.get("environment", {}))
+    ports: list[str] = []
+    for b in bridges_on(plan, node):
+        if b.spec.serve:
+            ports.append(f"{b.spec.port}:{b.spec.port}")
+        if b.spec.password_env:
+            env[b.spec.password_env] = "${" + b.spec.password_env + "}"
+    if ports:
+        service["ports"] = list(dict.fromkeys(ports))
+    if env:
+        service["environment"] = env
+
+
 def compose_data(
     doc: PlanDocument, node: str, *, image: str, model_file: str = "model.yaml"
 ) -> dict[str, Any]:
@@ -505,6 +525,8 @@ def compose_data(
             ports = [item.publish for item in _listens(plan, node) if item.publish]
             if ports:
                 service["ports"] = list(dict.fromkeys(ports))
+        if p.role == "bridges":
+            _bridge_service(service, plan, node)
         if plan.fabric.tls:  # rap certs MODEL writes <model folder>/certs
             service["volumes"] = [*service.get("volumes", []), f"../../certs:{CERTS_MOUNT}:ro"]
         services[names[p.name]] = service
