@@ -31,6 +31,8 @@ PACKAGE = {
 SERVICE = {"TrustService", "open_service"}
 CONFIG = {
     "ChannelMap",
+    "DdsConfig",
+    "DdsTopic",
     "FabricConfig",
     "FabricInput",
     "MqttConfig",
@@ -78,6 +80,7 @@ def test_every_module_is_listed() -> None:
         "trust_checker.io.auth",
         "trust_checker.io.codec",
         "trust_checker.io.credentials",
+        "trust_checker.io.dds",
         "trust_checker.io.fabric",
         "trust_checker.io.mqtt",
         "trust_checker.io.ports",

@@ -1,11 +1,12 @@
 """``python -m trust_checker SPEC``: run a trust spec on a trace file, MQTT, Redis or the
-fabric.
+fabric, with inputs from ROS 2 topics over DDS as well.
 
     python -m trust_checker spec.dsrv --input-file trace.txt      console lines, then exit
     python -m trust_checker spec.dsrv --check                     validate only
     python -m trust_checker spec.dsrv --mqtt 127.0.0.1:1883 [--topics JSON] [--tagged]
     python -m trust_checker spec.dsrv --redis redis://127.0.0.1:6379/0 [--redis-channels JSON]
     python -m trust_checker spec.dsrv --fabric SYSTEM [--connect EP ...] [--listen EP ...]
+    python -m trust_checker spec.dsrv --dds 0 [--dds-topics JSON] [--dds-qos 0|1]
     python -m trust_checker new.dsrv --send-swap --fabric SYSTEM --connect EP --as NAME --certs DIR
     python -m trust_checker new.dsrv --send-swap --mqtt HOST:PORT --as NAME --certs DIR
     python -m trust_checker new.dsrv --send-swap --redis URL --as NAME --certs DIR
@@ -68,6 +69,8 @@ from rap_sdk.metrics import TrustCollector, VerdictCounts, check_metrics_option,
 
 from .config import (
     ChannelMap,
+    DdsConfig,
+    DdsTopic,
     FabricConfig,
     FabricInput,
     MqttConfig,
@@ -98,7 +101,9 @@ T = TypeVar("T")
 
 log = logging.getLogger(__name__)
 
-_HOW_TO_RUN = "give --input-file FILE, --mqtt HOST:PORT, --redis URL or --fabric SYSTEM"
+_HOW_TO_RUN = (
+    "give --input-file FILE, --mqtt HOST:PORT, --redis URL, --fabric SYSTEM or --dds DOMAIN"
+)
 _MQTT_OPTIONS = (
     ("password_env", "--mqtt-password-env"),
     ("password_file", "--mqtt-password-file"),
@@ -118,6 +123,7 @@ _EXAMPLES: dict[type, str] = {
     TopicMap: '{"stream": {"topic": "a/b"}}',
     ChannelMap: '{"stream": {"channel": "robot/x"}}',
     FabricInput: '{"stream": {"key": "rap/s/data/x", "field": "f"}}',
+    DdsTopic: '{"stream": {"topic": "/robot/x", "type": "std_msgs/msg/Float64"}}',
 }
 
 
@@ -308,6 +314,32 @@ def main(
     redis_key: Annotated[
         str, typer.Option("--redis-key", metavar="PEM", help="The client certificate's key.")
     ] = "",
+    dds: Annotated[
+        int | None,
+        typer.Option(
+            "--dds",
+            metavar="DOMAIN",
+            help="Also read inputs from ROS 2 topics over DDS, on this domain (ROS_DOMAIN_ID).",
+            show_default=False,
+        ),
+    ] = None,
+    dds_topics: Annotated[
+        str | None,
+        typer.Option(
+            "--dds-topics",
+            metavar="JSON",
+            help='DDS input map, JSON: {"stream": {"topic": "/robot/x", "type": '
+            '"std_msgs/msg/Float64"}} (default: /<stream>, rap_msgs/msg/Frame).',
+        ),
+    ] = None,
+    dds_qos: Annotated[
+        int,
+        typer.Option(
+            "--dds-qos",
+            metavar="0|1",
+            help="0: best effort (every publisher); 1: reliable, transient-local.",
+        ),
+    ] = 0,
     certs: Annotated[
         Path | None,
         typer.Option(
@@ -425,6 +457,18 @@ def main(
             redis_credentials(redis_cfg)  # a missing password or certificate: said now
         except ConfigError as exc:
             raise fail(str(exc)) from None
+    dds_cfg = None
+    if dds is None and (dds_topics is not None or dds_qos):
+        raise fail("the --dds-* options go with --dds DOMAIN - give it, or drop them")
+    if dds is not None:
+        try:
+            dds_cfg = DdsConfig(
+                domain=dds,
+                topics=_decode(dds_topics, DdsTopic, "--dds-topics") if dds_topics else {},
+                qos=dds_qos,
+            )
+        except ValueError as exc:
+            raise fail(f"--dds: {exc}") from None
     fabric_cfg = None
     zconf = None
     if fabric is not None:
@@ -433,17 +477,21 @@ def main(
         )
     try:
         config = ServiceConfig(
-            node=node, tick=tick, mqtt=mqtt_cfg, redis=redis_cfg, fabric=fabric_cfg
+            node=node, tick=tick, mqtt=mqtt_cfg, redis=redis_cfg, fabric=fabric_cfg, dds=dds_cfg
         )
     except ValueError as exc:  # the tick policy
         raise fail(f"--tick: {exc}") from None
-    live = [cfg for cfg in (mqtt_cfg, redis_cfg, fabric_cfg) if cfg is not None]
+    live = [cfg for cfg in (mqtt_cfg, redis_cfg, fabric_cfg, dds_cfg) if cfg is not None]
     if input_file is not None and live:
-        raise fail("--input-file runs alone - drop --mqtt, --redis and --fabric, or --input-file")
+        raise fail(
+            "--input-file runs alone - drop --mqtt, --redis, --fabric and --dds, or --input-file"
+        )
     parsed = _load(spec)
     if send_swap:
         if input_file is not None or check:
             raise fail("--send-swap sends SPEC to a running checker - drop --input-file/--check")
+        if dds_cfg is not None:
+            raise fail("--send-swap: DDS takes no hot swap - use --fabric, --mqtt or --redis")
         if len(live) != 1:
             raise fail(
                 "--send-swap: give one of --fabric SYSTEM (with --node), --mqtt HOST:PORT "

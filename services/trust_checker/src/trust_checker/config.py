@@ -2,15 +2,17 @@
 
 :class:`ServiceConfig` is what :func:`trust_checker.service.open_service` runs: the
 checker's node id, its tick policy, and the transports (:class:`MqttConfig`,
-:class:`RedisConfig`, :class:`FabricConfig`; any of them, or none for a checker fed in
-Python). The command line builds these from its flags; JSON maps (``--topics``,
-``--redis-channels``, ``--fabric-inputs``) are decoded strictly with :func:`decode_map`,
+:class:`RedisConfig`, :class:`FabricConfig`, :class:`DdsConfig` for inputs from ROS 2
+topics; any of them, or none for a checker fed in Python). The command line builds
+these from its flags; JSON maps (``--topics``, ``--redis-channels``, ``--fabric-inputs``,
+``--dds-topics``) are decoded strictly with :func:`decode_map`,
 whose errors name the ``$.path`` of the bad part (:class:`rap_sdk.ConfigError`).
 """
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Final, TypeVar
+import re
+from typing import Annotated, Any, Final, Literal, TypeVar
 from urllib.parse import urlsplit
 
 import msgspec
@@ -21,6 +23,8 @@ from .io.ticks import TickPolicy, parse_tick_policy
 
 __all__ = [
     "ChannelMap",
+    "DdsConfig",
+    "DdsTopic",
     "FabricConfig",
     "FabricInput",
     "MqttConfig",
@@ -251,6 +255,61 @@ class FabricConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     same way."""
 
 
+DdsType = Literal[
+    "rap_msgs/msg/Frame",
+    "std_msgs/msg/Bool",
+    "std_msgs/msg/Int64",
+    "std_msgs/msg/Float64",
+    "std_msgs/msg/String",
+]
+"""The ROS 2 message types an input is read as (see :mod:`trust_checker.io.dds`)."""
+_ROS_TOPIC: Final = re.compile(r"(/[A-Za-z_][A-Za-z0-9_]*)+")
+
+
+class DdsTopic(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """Where one input stream lives on DDS: a ROS 2 topic and its message type."""
+
+    topic: str
+    """The ROS 2 topic, absolute (``/robot/latency``; on DDS ``rt/robot/latency``)."""
+    type: DdsType = "rap_msgs/msg/Frame"
+    """``rap_msgs/msg/Frame``: the payload is the value as on MQTT (any of the codec's
+    forms); ``std_msgs/msg/Bool``, ``Int64``, ``Float64``, ``String``: ``data``."""
+
+    def __post_init__(self) -> None:
+        if not _ROS_TOPIC.fullmatch(self.topic):
+            raise ValueError(
+                f"{self.topic!r} is not a ROS 2 topic name - write it absolute, tokens of "
+                "letters, digits and _ not starting with a digit, e.g. /robot/latency"
+            )
+
+
+class DdsConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """The checker's inputs from ROS 2 topics over DDS (see :mod:`trust_checker.io.dds`)."""
+
+    domain: Annotated[int, msgspec.Meta(ge=0, le=232)] = 0
+    """The DDS domain (ROS 2's ``ROS_DOMAIN_ID``)."""
+    topics: dict[str, DdsTopic] = {}
+    """input stream -> its topic and type; a stream not named here is read from the
+    topic ``/<stream>`` as ``rap_msgs/msg/Frame``."""
+    qos: Annotated[int, msgspec.Meta(ge=0, le=1)] = 0
+    """0: best effort, volatile (takes every publisher); 1: reliable, transient-local
+    (takes only publishers that offer it, and their history on joining)."""
+    depth: Annotated[int, msgspec.Meta(ge=1, le=100_000)] = 100
+    """Samples each reader keeps while the checker is busy (the newest win)."""
+
+    def topic_of(self, stream: str) -> DdsTopic:
+        found = self.topics.get(stream)
+        if found is not None:
+            return found
+        try:
+            return DdsTopic(f"/{stream}")
+        except ValueError:
+            raise ConfigError(
+                f"input {stream!r} has no ROS 2 topic of its own name - map it in the DDS "
+                'topics: {"' + stream + '": {"topic": "/robot/x"}}'
+            ) from None
+
+
 class ServiceConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """One checker: what :func:`trust_checker.service.open_service` wires and runs."""
 
@@ -269,6 +328,7 @@ class ServiceConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     mqtt: MqttConfig | None = None
     redis: RedisConfig | None = None
     fabric: FabricConfig | None = None
+    dds: DdsConfig | None = None
 
     def __post_init__(self) -> None:
         parse_tick_policy(self.tick)  # ValueError saying how to write it

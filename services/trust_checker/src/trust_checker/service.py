@@ -34,6 +34,7 @@ from rap_sdk.identity import Verifier
 
 from .config import ServiceConfig
 from .engine import SpecRunner
+from .io.dds import DdsTransport
 from .io.fabric import FabricTransport
 from .io.mqtt import MqttTransport
 from .io.ports import RunnerLike, RunningSink, Sink, SpecLoader
@@ -59,6 +60,8 @@ class TrustService:
     """The fabric transport, when ``config.fabric`` is set."""
     redis: RedisTransport | None = None
     """The Redis transport, when ``config.redis`` is set."""
+    dds: DdsTransport | None = None
+    """The DDS inputs, when ``config.dds`` is set."""
 
     @property
     def runner(self) -> RunnerLike:
@@ -68,7 +71,7 @@ class TrustService:
     @property
     def rejected(self) -> int:
         """Payloads the transports refused, in all."""
-        transports = (self.mqtt, self.redis, self.fabric)
+        transports = (self.mqtt, self.redis, self.fabric, self.dds)
         return sum(t.stats.rejections.total for t in transports if t is not None)
 
     def summary(self) -> str:
@@ -136,10 +139,11 @@ async def open_service(
         fab = None
         if config.fabric is not None and fabric is not None:
             fab = FabricTransport(session, config.fabric, fabric=fabric, gate=gate)
+        dds = DdsTransport(session, config.dds) if config.dds is not None else None
     except BaseException:
         session.discard()
         raise
-    service = TrustService(config, session, mqtt, fab, red)
+    service = TrustService(config, session, mqtt, fab, red, dds)
     async with anyio.create_task_group() as tg:
         for sink in sinks:
             if isinstance(sink, RunningSink):
@@ -151,6 +155,8 @@ async def open_service(
             await tg.start(red.run)
         if fab is not None:
             await tg.start(fab.run)
+        if dds is not None:
+            await tg.start(dds.run)
         log.info(
             "ready: inputs %s, outputs %s, tick policy %s",
             ", ".join(runner.inputs) or "none",

@@ -1,7 +1,7 @@
 """Inputs and outputs of the checker: payload codec, tick policies, the session that
 owns the spec runner, and the MQTT, Redis and fabric transports (:mod:`.mqtt`,
-:mod:`.redis`, :mod:`.fabric`; wired together by
-:func:`trust_checker.service.open_service`)."""
+:mod:`.redis`, :mod:`.fabric`) and inputs from ROS 2 topics (:mod:`.dds`); wired together
+by :func:`trust_checker.service.open_service`."""
 
 from .codec import CodecError, decode_json, decode_payload, encode_value, payload_form
 from .ports import OutputLike, RunnerLike, RunningSink, Sink, SpecLoader, VerdictSink
