@@ -9,6 +9,7 @@ in this process); everything on the loopback interface (``outside_dds.loopback_o
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -173,6 +174,14 @@ def test_twist_odometry_and_plan_are_ros2s_byte_for_byte(ros2: Any) -> None:
     )
 
 
+def _clockwise(*, time_increment: float) -> Any:
+    """A ROS 2 scan of a clockwise lidar (negative increment) with this time step."""
+    scan = to_ros(occluded_scan(stamp=STAMP))
+    return dataclasses.replace(
+        scan, angle_increment=-scan.angle_increment, time_increment=time_increment
+    )
+
+
 @pytest.mark.parametrize(
     ("make", "reason"),
     [
@@ -189,6 +198,10 @@ def test_twist_odometry_and_plan_are_ros2s_byte_for_byte(ros2: Any) -> None:
             "NUL",
         ),
         (lambda: from_ros(Twist_(Vector3_(1, 0.5, 0), Vector3_(0, 0, 0)), Twist), "linear.y"),
+        (  # a clockwise scan whose beams' times run past an int64 of nanoseconds
+            lambda: from_ros(_clockwise(time_increment=1e12), LaserScan),
+            "time_increment",
+        ),
     ],
 )
 def test_what_cannot_be_represented_is_refused_with_the_reason(make: Any, reason: str) -> None:

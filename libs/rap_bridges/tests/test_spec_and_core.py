@@ -138,3 +138,13 @@ def test_the_metrics_are_exported_with_labels() -> None:
     )
     names = {m.name for m in registry.collect()}
     assert {n.removesuffix("_total") for n in METRICS} == names
+
+
+@pytest.mark.parametrize("field", ["ca", "cert"])
+def test_a_dds_bridge_with_tls_files_says_so(field: str) -> None:
+    extra = {"cert": "c.pem", "key": "k.pem"} if field == "cert" else {"ca": "ca.pem"}
+    with pytest.raises(ValueError, match="a dds bridge takes no credentials or TLS"):
+        BridgeSpec(protocol="dds", url="dds://0", address="/scan", format="cdr", **extra)
+    kafka = {"protocol": "kafka", "url": "kafka://h:9092", "address": "t", **extra}
+    with pytest.raises(ValueError, match="a kafka bridge takes no credentials or TLS"):
+        BridgeSpec(**kafka)  # type: ignore[arg-type]

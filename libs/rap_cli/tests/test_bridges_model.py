@@ -96,6 +96,20 @@ def test_a_model_with_bridges_checks_clean_and_each_bridge_goes_its_way() -> Non
             "error: $.components.robot.ports.spin.bridge.protocol: 'mqtt5' is not one of "
             "'amqp', 'dds', 'kafka', 'mqtt', 'nats', 'redis', 'redis-stream', 'tcp', 'websocket'",
         ),
+        (  # Redis pub/sub bringing messages in at QoS 1: it cannot
+            "anomaly: {direction: in, type: Mask}",
+            "anomaly: {direction: in, type: Mask,\n"
+            "                bridge: {protocol: redis, url: 'redis://127.0.0.1:6379',\n"
+            "                         address: anomaly, qos: 1}}",
+            "qos: 1}}|1}}",
+            "error: port planner.anomaly: Redis pub/sub brings messages in at most once",
+        ),
+        (  # an outgoing MQTT bridge on a wildcard
+            "address: robot/spin,",
+            "address: 'robot/#',",
+            "'robot/#'",
+            "error: port robot.spin: its messages are published on one MQTT topic",
+        ),
         (  # a format that needs a type on an untyped port
             "new_data: {direction: out, kind: event}",
             "new_data: {direction: out, kind: event,\n"
@@ -318,3 +332,17 @@ def test_the_bridges_process_refuses_what_it_cannot_run_with_the_place_and_the_f
     done = _run_bridges(model, "--node", "moon")
     assert done.returncode == 2
     assert "compute node 'moon' is not in the model" in done.stderr
+    # what only the link knows, before anything starts: a wss server needs its certificate
+    text = BRIDGED.replace(
+        "bridge: {protocol: tcp, url: 'tcp://127.0.0.1:9000', format: envelope}",
+        "bridge: {protocol: websocket, url: 'wss://127.0.0.1:9000', serve: true,\n"
+        "                         format: envelope}",
+        1,
+    )
+    model.write_text(text)
+    assert check_model_text(text, "m.yaml").ok  # the spec alone is fine
+    done = _run_bridges(model, "--node", "laptop")
+    assert done.returncode == 2, done.stderr
+    where = _at(text, "{protocol: websocket").replace("m.yaml", str(model))
+    assert f"{where}: bridge analysis.anomaly (out): a serving wss:// bridge needs" in done.stderr
+    assert "Traceback" not in done.stderr

@@ -238,22 +238,28 @@ class BridgeSpec(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_onl
             )
         if self.password_env and self.password_file:
             raise ValueError("give password_env or password_file, not both")
+        if proto == "dds" and (
+            self.username or self.password_env or self.password_file or self.ca or self.cert
+        ):
+            raise ValueError(
+                "a dds bridge takes no credentials or TLS settings (DDS Security is not "
+                "supported) - remove them"
+            )
         if (self.password_env or self.password_file) and not self.username:
             raise ValueError("a password needs a username - add username: <name>")
         if (self.cert is None) != (self.key is None):
             raise ValueError("cert and key go together: give both or neither")
         if (self.ca or self.cert) and not self.tls:
+            schemes = SCHEMES[self.protocol]
             raise ValueError(
                 f"ca/cert/key are TLS settings but {self.url} is not a TLS URL - write "
-                f"{SCHEMES[self.protocol][1]}://{parts.netloc}"
+                f"{schemes[1]}://{parts.netloc}"
+                if len(schemes) > 1
+                else f"ca/cert/key are TLS settings, and a {self.protocol} bridge has no TLS "
+                "here - remove them"
             )
         if proto == "tcp" and self.tls:
             raise ValueError("tcps:// (TCP with TLS) is not supported yet - use tcp://")
-        if proto == "dds" and (self.username or self.password_env or self.password_file or self.ca):
-            raise ValueError(
-                "a dds bridge takes no credentials or TLS settings (DDS Security is not "
-                "supported) - remove them"
-            )
         if proto == "websocket" and (self.username or self.password_env or self.password_file):
             raise ValueError(
                 "a websocket bridge takes no username or password - use wss:// with a "

@@ -251,6 +251,25 @@ def _bridge_findings(plan: DeploymentPlan) -> Iterator[ModelFinding]:
                     "- split it into an 'in' and an 'out' port, each with its bridge",
                     key=True,
                 )
+            # which way it carries: a port of an external component RAP does not start
+            # lives on the protocol (docs/bridges.md)
+            outside = comp.external and not comp.run
+            incoming = (port.direction == "in") != outside
+            if spec.protocol == "redis" and incoming and spec.qos > 0:
+                yield ModelFinding(
+                    (*loc, "qos"),
+                    "error",
+                    f"port {cname}.{pname}: Redis pub/sub brings messages in at most once "
+                    "(what is published while the bridge reconnects is lost) - write qos: 0, "
+                    "or use protocol: redis-stream for at least once",
+                )
+            if spec.protocol == "mqtt" and not incoming and any(c in spec.address for c in "+#"):
+                yield ModelFinding(
+                    (*loc, "address"),
+                    "error",
+                    f"port {cname}.{pname}: its messages are published on one MQTT topic, "
+                    f"and {spec.address!r} has a wildcard - name one topic",
+                )
             if spec.format != "envelope" and port.type is None:
                 yield ModelFinding(
                     (*loc, "format"),

@@ -396,7 +396,14 @@ class DdsLink:
                 f"{self.mapping.ros_name} does not map to {self.message.TYPE}: {exc.reason}"
             )
             return
-        batch.frames.append(Frame(self._encode_rap(body), {HEADER_TYPE: self.message.TYPE}))
+        try:
+            payload = self._encode_rap(body)
+        except (ValueError, OverflowError, TypeError) as exc:  # e.g. a stamp past int64
+            batch.rejected.append(
+                f"{self.mapping.ros_name} does not map to {self.message.TYPE}: {exc}"
+            )
+            return
+        batch.frames.append(Frame(payload, {HEADER_TYPE: self.message.TYPE}))
 
     # -- out --------------------------------------------------------------------------------
 

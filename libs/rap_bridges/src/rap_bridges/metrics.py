@@ -100,7 +100,10 @@ class BridgeCollector(Collector):
             labels = [self.system, self.compute_node, b.name, b.spec.protocol, b.direction]
             st = b.stats
             for name, attr in _COUNTERS.items():
-                counters[name].add_metric(labels, getattr(st, attr))
+                value = getattr(st, attr)
+                if attr == "duplicates":  # and the resends a link passed over itself
+                    value += getattr(b.link, "duplicates", 0)
+                counters[name].add_metric(labels, value)
             for reason, n in sorted(_copy(st.rejections.by_reason).items()):
                 rejected.add_metric([*labels, reason], n)
             connected.add_metric(labels, 1.0 if st.connected else 0.0)

@@ -162,11 +162,10 @@ class NatsLink:
             lost.set()
 
         async def on_error(exc: Exception) -> None:
-            if isinstance(exc, nats.errors.SlowConsumerError):
-                log.warning(
-                    "bridge %s: %s: NATS dropped messages (slow consumer)",
-                    self.ctx.name,
-                    self.where,
+            if isinstance(exc, nats.errors.SlowConsumerError):  # one call per message
+                self.ctx.reject(  # counted, and logged at most once a second
+                    "the NATS client dropped a message: the bridge is a slow consumer "
+                    "(its pending limit is full) - raise buffer, or see why the fabric is slow"
                 )
                 return
             self._error = exc
@@ -200,6 +199,10 @@ class NatsLink:
             with anyio.CancelScope(shield=True), anyio.move_on_after(0.25):
                 await nc.close()
             raise LinkDown(f"cannot connect: {_why(exc)}", _fix(exc, spec)) from None
+        except anyio.get_cancelled_exc_class():  # the bridge stops while it connects
+            with anyio.CancelScope(shield=True), anyio.move_on_after(0.25):
+                await nc.close()
+            raise
         self._nc, self._lost = nc, lost
         try:
             if self.jetstream:

@@ -249,6 +249,9 @@ class _RedisLink:
         except (RedisError, OSError) as exc:
             await _disconnect(conn)
             raise LinkDown(f"cannot connect: {exc}", _fix(exc, spec)) from None
+        except anyio.get_cancelled_exc_class():  # the bridge stops while it connects
+            await _disconnect(conn)
+            raise
         self._conn = conn
         self._lock = anyio.Lock()
 

@@ -324,6 +324,11 @@ def _scan_in(msg: LaserScan_) -> dict[str, Any]:
         step = float(msg.time_increment)
         if math.isfinite(step) and step > 0:
             stamp += round((n - 1) * step * NS)
+            if stamp >= 2**63:
+                raise Unrepresentable(
+                    f"time_increment {step} puts the last beam's time past 2262 (an int64 "
+                    "of nanoseconds)"
+                )
     ranges = np.where(np.isnan(ranges), np.float32(np.inf), ranges)
     ranges = np.where(np.isneginf(ranges), np.float32(0.0), ranges)
     return {

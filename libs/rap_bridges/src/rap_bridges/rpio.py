@@ -66,6 +66,7 @@ import uuid
 from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
+from functools import partial
 from typing import Annotated, Any, Final, Protocol
 from urllib.parse import urlsplit
 
@@ -391,14 +392,18 @@ class RpioStage:
 
     async def _connect(self, cfg: RpioConfig) -> None:
         await self.close()
-        client = Redis(
-            host=cfg.host,
-            port=cfg.port,
-            db=cfg.db,
-            socket_timeout=max(cfg.timeout, 1.0) + 1.0,
-            socket_connect_timeout=2.0,
-            retry=Retry(NoBackoff(), 0),  # retries are this stage's, with its backoff
-            client_name=f"rap-rpio-{self.name}",
+        # built in a worker thread: redis-py's constructor reads its package's metadata
+        client = await anyio.to_thread.run_sync(
+            partial(
+                Redis,
+                host=cfg.host,
+                port=cfg.port,
+                db=cfg.db,
+                socket_timeout=max(cfg.timeout, 1.0) + 1.0,
+                socket_connect_timeout=2.0,
+                retry=Retry(NoBackoff(), 0),  # retries are this stage's, with its backoff
+                client_name=f"rap-rpio-{self.name}",
+            )
         )
         try:
             await client.ping()

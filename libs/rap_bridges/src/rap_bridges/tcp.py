@@ -29,7 +29,6 @@ client (waiting for a first client while there is none) and takes frames from al
 from __future__ import annotations
 
 import logging
-import os
 import struct
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -42,7 +41,8 @@ from anyio.streams.buffered import BufferedByteReceiveStream
 from anyio.streams.stapled import MultiListener
 from rap_schemas.limits import DECODE_ERRORS
 
-from .core import Deliver, Frame, LinkContext, LinkDown
+from .core import Deliver, Frame, FrameRefused, LinkContext, LinkDown
+from .sequencing import HEADER_ACK, HEADER_SENDER, HEADER_SEQ, Sequencer
 from .spec import BridgeSpec
 
 __all__ = [
@@ -59,15 +59,10 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-HEADER_SEQ: Final = "rap-seq"
-HEADER_SENDER: Final = "rap-sender"
-HEADER_ACK: Final = "rap-ack"
 HEADER_ROOM: Final = 2 + 0xFFFF
 """What a frame may hold beside its payload: the header map's length and the map."""
 TIMEOUT_S: Final = 10.0
 """How long a connection or an acknowledgement may take before the link counts as lost."""
-MAX_SENDERS: Final = 4096
-"""Senders whose last frame number is remembered (for passing over resent frames)."""
 
 _HEAD = struct.Struct(">IH")
 _LENGTH = struct.Struct(">I")
@@ -163,19 +158,24 @@ class TcpLink:
     def __init__(self, spec: BridgeSpec, ctx: LinkContext) -> None:
         self.spec = spec
         self.ctx = ctx
-        self.sender = os.urandom(8).hex()
-        """This link's id in ``rap-sender``."""
-        self.duplicates = 0
-        """Frames received again (a resend after a reconnect) and passed over."""
+        self.sequencer = Sequencer(numbered=spec.qos > 0)
+        """Numbers what it sends, and remembers what it took (``rap-seq``)."""
         self.port: int = spec.port
         """The port: for a server on port 0, the one it got."""
         self._peer: _Peer | None = None
         self._peers: set[_Peer] = set()
         self._joined: anyio.Event | None = None  # made on the event loop
         self._listener: MultiListener[SocketStream] | None = None
-        self._seq = -1
-        self._last: tuple[Frame, int] | None = None
-        self._seen: dict[str, int] = {}
+
+    @property
+    def sender(self) -> str:
+        """This link's id in ``rap-sender``."""
+        return self.sequencer.sender
+
+    @property
+    def duplicates(self) -> int:
+        """Frames received again (a resend after a reconnect) and passed over."""
+        return self.sequencer.duplicates
 
     @property
     def where(self) -> str:
@@ -275,47 +275,25 @@ class TcpLink:
                 raise LinkDown(f"{peer.name} closed the connection") from None
             except (anyio.BrokenResourceError, anyio.ClosedResourceError, OSError) as exc:
                 raise LinkDown(f"connection to {peer.name} lost: {exc}") from None
-            ack = headers.get(HEADER_ACK)
+            ack = await self.sequencer.incoming(
+                headers, payload, deliver, self.ctx.reject, peer.ack
+            )
             if ack is not None:
-                if ack.isdigit():
-                    peer.ack(int(ack))
-                else:
-                    self.ctx.reject(f"{HEADER_ACK} header is not a number: {ack[:40]!r}")
-                continue
-            seq_text = headers.pop(HEADER_SEQ, None)
-            sender = headers.pop(HEADER_SENDER, "")
-            if seq_text is None:
-                await deliver(Frame(payload, headers))
-                continue
-            if not seq_text.isdigit():
-                self.ctx.reject(f"{HEADER_SEQ} header is not a number: {seq_text[:40]!r}")
-                continue
-            seq = int(seq_text)
-            if seq <= self._seen.get(sender, -1):
-                self.duplicates += 1
-            else:
-                await deliver(Frame(payload, headers))
-                if sender not in self._seen and len(self._seen) >= MAX_SENDERS:
-                    del self._seen[next(iter(self._seen))]
-                self._seen[sender] = seq
-            await peer.write(encode_frame(b"", {HEADER_ACK: seq_text}))
+                await peer.write(encode_frame(b"", {HEADER_ACK: ack}))
 
     # -- sending -----------------------------------------------------------------------
 
     def _numbered(self, frame: Frame) -> tuple[bytes, int]:
-        headers = dict(frame.headers)
-        seq = -1
-        if self.spec.qos > 0:
-            last = self._last
-            if last is not None and last[0] is frame:
-                seq = last[1]  # the same frame again (after a reconnect): the same number
-            else:
-                self._seq += 1
-                seq = self._seq
-                self._last = (frame, seq)
-            headers[HEADER_SEQ] = str(seq)
-            headers[HEADER_SENDER] = self.sender
-        return encode_frame(frame.payload, headers), seq
+        if len(frame.payload) > self.spec.max_frame:  # a receiver of this spec refuses it
+            raise FrameRefused(
+                f"message of {len(frame.payload)} bytes is over max_frame "
+                f"({self.spec.max_frame}); not sent"
+            )
+        headers, seq = self.sequencer.outgoing(frame)
+        try:
+            return encode_frame(frame.payload, headers), seq
+        except ValueError as exc:  # headers over 64 KiB
+            raise FrameRefused(f"{exc}; not sent") from None
 
     async def send(self, frame: Frame) -> None:
         data, seq = self._numbered(frame)

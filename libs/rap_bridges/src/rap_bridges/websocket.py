@@ -47,7 +47,6 @@ certificate) and, with ``ca``, admits only clients whose certificate ``ca`` sign
 from __future__ import annotations
 
 import logging
-import os
 import ssl
 import struct
 from collections.abc import Callable
@@ -64,9 +63,10 @@ from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidSta
 from websockets.frames import CloseCode
 from websockets.http11 import Request, Response
 
-from .core import Deliver, Frame, LinkContext, LinkDown
+from .core import Deliver, Frame, FrameRefused, LinkContext, LinkDown
+from .sequencing import HEADER_ACK, Sequencer
 from .spec import BridgeSpec
-from .tcp import HEADER_ACK, HEADER_ROOM, HEADER_SENDER, HEADER_SEQ, MAX_SENDERS
+from .tcp import HEADER_ROOM
 
 __all__ = [
     "BadMessage",
@@ -206,19 +206,24 @@ class WebSocketLink:
         self.spec = spec
         self.ctx = ctx
         self.path = spec.address or "/"
-        self.sender = os.urandom(8).hex()
-        """This link's id in ``rap-sender``."""
-        self.duplicates = 0
-        """Messages received again (a resend after a reconnect) and passed over."""
+        self.sequencer = Sequencer(numbered=spec.qos > 0)
+        """Numbers what it sends, and remembers what it took (``rap-seq``)."""
         self.port: int = spec.port
         """The port: for a server on port 0, the one it got."""
         self._peer: _Peer | None = None
         self._peers: set[_Peer] = set()
         self._changed: anyio.Event | None = None  # made on the event loop
         self._server: Server | None = None
-        self._seq = -1
-        self._last: tuple[Frame, int] | None = None
-        self._seen: dict[str, int] = {}
+
+    @property
+    def sender(self) -> str:
+        """This link's id in ``rap-sender``."""
+        return self.sequencer.sender
+
+    @property
+    def duplicates(self) -> int:
+        """Frames received again (a resend after a reconnect) and passed over."""
+        return self.sequencer.duplicates
 
     @property
     def where(self) -> str:
@@ -367,6 +372,10 @@ class WebSocketLink:
             log.info("bridge %s: client %s left: %s", self.ctx.name, peer.name, exc)
             self._peers.discard(peer)
             peer.leave()
+            # closed here too (an acknowledgement it did not read in time): its handler
+            # waits for the close, and the client learns it is dropped
+            with anyio.CancelScope(shield=True), anyio.move_on_after(CLOSE_TIMEOUT_S + 1):
+                await peer.conn.close()
         finally:
             reading.discard(peer)
 
@@ -393,47 +402,25 @@ class WebSocketLink:
             except BadMessage as exc:
                 self.ctx.reject(str(exc))
                 continue
-            ack = headers.get(HEADER_ACK)
+            ack = await self.sequencer.incoming(
+                headers, payload, deliver, self.ctx.reject, peer.ack
+            )
             if ack is not None:
-                if ack.isdigit():
-                    peer.ack(int(ack))
-                else:
-                    self.ctx.reject(f"{HEADER_ACK} header is not a number: {ack[:40]!r}")
-                continue
-            seq_text = headers.pop(HEADER_SEQ, None)
-            sender = headers.pop(HEADER_SENDER, "")
-            if seq_text is None:
-                await deliver(Frame(payload, headers))
-                continue
-            if not seq_text.isdigit():
-                self.ctx.reject(f"{HEADER_SEQ} header is not a number: {seq_text[:40]!r}")
-                continue
-            seq = int(seq_text)
-            if seq <= self._seen.get(sender, -1):
-                self.duplicates += 1
-            else:
-                await deliver(Frame(payload, headers))
-                if sender not in self._seen and len(self._seen) >= MAX_SENDERS:
-                    del self._seen[next(iter(self._seen))]
-                self._seen[sender] = seq
-            await peer.write(encode_message(b"", {HEADER_ACK: seq_text}))
+                await peer.write(encode_message(b"", {HEADER_ACK: ack}))
 
     # -- sending -----------------------------------------------------------------------
 
     def _numbered(self, frame: Frame) -> tuple[bytes, int]:
-        headers = dict(frame.headers)
-        seq = -1
-        if self.spec.qos > 0:
-            last = self._last
-            if last is not None and last[0] is frame:
-                seq = last[1]  # the same frame again (after a reconnect): the same number
-            else:
-                self._seq += 1
-                seq = self._seq
-                self._last = (frame, seq)
-            headers[HEADER_SEQ] = str(seq)
-            headers[HEADER_SENDER] = self.sender
-        return encode_message(frame.payload, headers), seq
+        if len(frame.payload) > self.spec.max_frame:  # a receiver of this spec refuses it
+            raise FrameRefused(
+                f"message of {len(frame.payload)} bytes is over max_frame "
+                f"({self.spec.max_frame}); not sent"
+            )
+        headers, seq = self.sequencer.outgoing(frame)
+        try:
+            return encode_message(frame.payload, headers), seq
+        except ValueError as exc:  # headers over 64 KiB
+            raise FrameRefused(f"{exc}; not sent") from None
 
     async def send(self, frame: Frame) -> None:
         data, seq = self._numbered(frame)

@@ -25,7 +25,7 @@ import signal
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, Literal
 
 import anyio
 import typer
@@ -35,6 +35,7 @@ from rap_schemas.catalog import registered
 from rap_schemas.message import Message
 from rap_sdk import FabricError, ZenohConfig, ZenohFabric
 from rap_sdk.entry import (
+    EntryError,
     LogFileOpt,
     MetricsOpt,
     check_system,
@@ -47,6 +48,10 @@ from rap_sdk.logs import LogContext, open_file_log, publish_logs
 from rap_sdk.metrics import check_metrics_option, start_metrics
 
 from .generate.wiring import channels
+
+if TYPE_CHECKING:
+    from rap_bridges import Bridge
+    from rap_sdk.fabric import Fabric
 
 __all__ = ["PortBridge", "bridges_on", "message_class", "port_bridges"]
 
@@ -125,20 +130,26 @@ def _packages(plan: DeploymentPlan) -> list[str]:
 def message_class(plan: DeploymentPlan, type_name: str | None) -> type[Message] | None:
     """The message class of a port's type: a RAP wire type (``rap.LaserScan/2``), or a
     message of the model that ``rap generate`` wrote (its package's ``messages`` module
-    registers it when imported). None: no type, or one whose class is not importable
-    (only format ``envelope`` can carry it: the envelope names its own type)."""
+    registers it, under the wire type ``<package>.<Class>/1``, when imported). None: no
+    type, or one whose class is not importable (only format ``envelope`` can carry it:
+    the envelope names its own type)."""
     if type_name is None:
         return None
     known = registered()
     if type_name in known:
         return known[type_name]
+    if type_name not in plan.messages:
+        return None
+    from .generate.messages import MessageNames
+
     for pkg in _packages(plan):
         try:
             importlib.import_module(f"{pkg}.messages")
         except ImportError:
             continue
-    for wire, cls in registered().items():
-        if cls.__name__ == type_name or wire.rsplit(".", 1)[-1].split("/")[0] == type_name:
+        wire = f"{pkg}.{MessageNames.of(plan, pkg).classes[type_name]}/1"
+        cls = registered().get(wire)
+        if cls is not None:
             return cls
     return None
 
@@ -182,33 +193,32 @@ def main(
             f"{doc.where(('compute_nodes', node), key=True)}: no port of a component on "
             f"{node!r} has a bridge - add 'bridge:' to a port (docs/bridges.md)"
         )
-    made = _make(doc, todo)
+    zconf = ZenohConfig()  # rap up's node config (RAP_ZENOH_CONFIG) is laid over it
+    fabric = ZenohFabric(zconf)  # opened in the event loop; the bridges take it now
+    bridges = _make(doc, todo, fabric)  # every link's settings checked before starting
     logs = LogContext(system=system or plan.system, compute_node=node, process=PROCESS)
     open_file_log(log_file, logs)
-    zconf = ZenohConfig()  # rap up's node config (RAP_ZENOH_CONFIG) is laid over it
     try:
-        anyio.run(partial(_serve, made, zconf, logs=logs, metrics=metrics))
+        anyio.run(partial(_serve, bridges, fabric, logs=logs, metrics=metrics))
     except (FabricError, BaseExceptionGroup) as exc:
         inner = leaf(exc)
         if isinstance(inner, FabricError):
             raise fail(str(inner), 1) from None
+        if isinstance(inner, EntryError):
+            raise inner from None
         raise
 
 
-@dataclass(frozen=True, slots=True)
-class _Made:
-    bridge: PortBridge
-    message: type[Message] | None
+def _make(doc: PlanDocument, todo: list[PortBridge], fabric: Fabric) -> list[Bridge]:
+    """The bridges, built (nothing connects yet): a format that needs a message class it
+    cannot have, or settings a link refuses, are errors at the port's bridge."""
+    from rap_bridges import Bridge
 
-
-def _make(doc: PlanDocument, todo: list[PortBridge]) -> list[_Made]:
-    """The message class of each bridge; a format that needs one it cannot have is an
-    error at the port's ``format``."""
     out = []
     for b in todo:
+        at = ("components", b.component, "ports", b.port, "bridge")
         cls = message_class(doc.plan, b.type)
         if b.spec.format != "envelope" and cls is None:
-            where = doc.where(("components", b.component, "ports", b.port, "bridge", "format"))
             what = (
                 "the port has no type"
                 if b.type is None
@@ -216,44 +226,38 @@ def _make(doc: PlanDocument, todo: list[PortBridge]) -> list[_Made]:
                 "of the model defines it (run rap generate, and put the package on PYTHONPATH)"
             )
             raise fail(
-                f"{where}: format {b.spec.format} needs the port's message type, but {what} "
-                "- give the port a type, or use format: envelope"
+                f"{doc.where((*at, 'format'))}: format {b.spec.format} needs the port's "
+                f"message type, but {what} - give the port a type, or use format: envelope"
             )
-        out.append(_Made(b, cls))
+        try:
+            bridge = Bridge(b.name, b.spec, fabric, b.key, direction=b.direction, message=cls)
+        except ValueError as exc:  # what only the link knows (the direction, the type)
+            raise fail(f"{doc.where(at)}: bridge {b.name} ({b.direction}): {exc}") from None
+        out.append(bridge)
     return out
 
 
 async def _serve(
-    made: list[_Made], zconf: ZenohConfig, *, logs: LogContext, metrics: str | None
+    bridges: list[Bridge], fabric: ZenohFabric, *, logs: LogContext, metrics: str | None
 ) -> None:
-    from rap_bridges import Bridge
     from rap_bridges.metrics import BridgeCollector
 
     with anyio.open_signal_receiver(signal.SIGTERM, signal.SIGINT) as signals:
         async with (
-            ZenohFabric(zconf) as fabric,
+            fabric,
             publish_logs(fabric, logs, node=f"{PROCESS}-{logs.compute_node}"),
             anyio.create_task_group() as tg,
         ):
-            bridges = []
-            for m in made:
-                b = m.bridge
-                try:
-                    bridge = Bridge(
-                        b.name, b.spec, fabric, b.key, direction=b.direction, message=m.message
-                    )
-                except ValueError as exc:
-                    raise fail(f"bridge {b.name}: {exc}") from None
+            for bridge in bridges:
                 await tg.start(bridge.run)
-                bridges.append(bridge)
                 log.info(
                     "bridge %s: %s %s %s (%s, qos %d)",
-                    b.name,
-                    b.key,
-                    "->" if b.direction == "out" else "<-",
+                    bridge.name,
+                    bridge.key,
+                    "->" if bridge.direction == "out" else "<-",
                     bridge.link.where,
-                    b.spec.format,
-                    b.spec.qos,
+                    bridge.spec.format,
+                    bridge.spec.qos,
                 )
             start_metrics(
                 metrics,

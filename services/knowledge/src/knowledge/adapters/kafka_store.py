@@ -39,7 +39,11 @@ from urllib.parse import urlsplit
 import anyio
 import msgspec
 from aiokafka import AIOKafkaProducer  # type: ignore[import-untyped]
-from aiokafka.errors import KafkaError  # type: ignore[import-untyped]
+from aiokafka.errors import (  # type: ignore[import-untyped]
+    KafkaError,
+    MessageSizeTooLargeError,
+    RecordTooLargeError,
+)
 from anyio.abc import TaskGroup, TaskStatus
 from rap_schemas import KbRecord, ModelMeta
 
@@ -50,6 +54,7 @@ from .sqlite_store import SqliteStore
 __all__ = ["DEFAULT_PORT", "DEFAULT_URL", "KafkaStore", "default_topic", "parse_url"]
 
 log = logging.getLogger(__name__)
+_TOO_LARGE = (MessageSizeTooLargeError, RecordTooLargeError)
 
 DEFAULT_PORT: Final = 9092
 DEFAULT_URL: Final = "kafka://127.0.0.1:9092"
@@ -120,6 +125,8 @@ class KafkaStore:
         """Set (and made anew) each time records leave the outbox."""
         self._tg: TaskGroup | None = None
         self.published = 0
+        self.refused = 0
+        """Records the broker refused for good (too large): in the store, not the topic."""
         """Records the broker acknowledged."""
         self.backlog = 0
         """Records in the outbox when it was last read."""
@@ -231,8 +238,21 @@ class KafkaStore:
                         self.topic, _encode(rec), key=rec.key.encode(), headers=headers
                     )
                 )
-            for future in sent:
-                await future  # acknowledged by the leader and the in-sync replicas
+            for (_, rec), future in zip(rows, sent, strict=True):
+                try:
+                    await future  # acknowledged by the leader and the in-sync replicas
+                except _TOO_LARGE as exc:  # refused for good: retrying would block the rest
+                    self.refused += 1
+                    log.error(
+                        "knowledge stream: the broker refused %s version %d as too large "
+                        "(%s); it stays in the store but is not in the topic %s (%d so far) "
+                        "- raise the broker's message.max.bytes",
+                        rec.key,
+                        rec.version,
+                        type(exc).__name__,
+                        self.topic,
+                        self.refused,
+                    )
 
     def _warn(self, message: str) -> None:
         now = time.monotonic()

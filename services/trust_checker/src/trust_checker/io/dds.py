@@ -161,14 +161,38 @@ class DdsTransport:
             gone = self._readers.pop(key)
             waitset.detach(gone.condition)
             gone.reader.__del__()  # deletes its condition too
+        types: dict[str, str] = {}
         for key, streams in want.items():
             if key in self._readers:
                 self._readers[key].streams = streams
+                types[key[0]] = key[1]
                 continue
             topic, type_name = key
-            reader = DataReader(
-                participant, Topic(participant, dds_topic(topic), TYPES[type_name]), self._qos()
-            )
+            if types.setdefault(topic, type_name) != type_name:  # DDS: one type per topic
+                log.error(
+                    "dds: inputs %s read %s as %s, but another input reads it as %s: one "
+                    "type per topic - these inputs are not read",
+                    ", ".join(streams),
+                    topic,
+                    type_name,
+                    types[topic],
+                )
+                continue
+            try:
+                reader = DataReader(
+                    participant,
+                    Topic(participant, dds_topic(topic), TYPES[type_name]),
+                    self._qos(),
+                )
+            except DDSException as exc:  # e.g. the topic exists with another type
+                log.error(
+                    "dds: cannot read %s as %s (%s): inputs %s are not read",
+                    topic,
+                    type_name,
+                    exc,
+                    ", ".join(streams),
+                )
+                continue
             mask = SampleState.Any | ViewState.Any | InstanceState.Any
             condition = ReadCondition(reader, mask)
             waitset.attach(condition)
