@@ -361,3 +361,34 @@ def test_a_region_whose_port_left_the_model_is_reported_and_the_old_file_kept(
     assert "on_observed no longer exist" in out
     assert "#     log.info('mine')" in node.read_text()
     assert (pkg / ".rap/previous/moved/nodes/analyse.py").read_text() == before
+
+
+def test_a_file_rap_rewrites_is_kept_when_it_is_not_as_rap_wrote_it(tmp_path: Path) -> None:
+    """rap generate rewrites some files whole (tests/conftest.py, messages, deploy/): one
+    edited by hand since, or a file of the user's at that place, is kept in
+    .rap/previous first and named in a warning; one as rap wrote it is rewritten
+    quietly."""
+    code, out = _rap("new", "kept", cwd=tmp_path)
+    assert code == 0, out
+    pkg = tmp_path / "kept"
+    conftest = pkg / "tests" / "conftest.py"
+    generated = conftest.read_text()
+    code, out = _rap("generate", "model.yaml", cwd=pkg)
+    assert code == 0, out
+    assert "not as rap last wrote them" not in out  # untouched: nothing to keep
+    mine = generated + "\n\n@pytest.fixture\ndef ship() -> str:\n    return 'mine'\n"
+    conftest.write_text(mine)
+    code, out = _rap("generate", "model.yaml", cwd=pkg)
+    assert code == 0, out
+    assert "1 file(s) rap rewrites were not as rap last wrote them: tests/conftest.py" in out
+    assert (pkg / ".rap/previous/tests/conftest.py").read_text() == mine
+    assert conftest.read_text() == generated
+    # a package generated into a folder that already had its own file there
+    other = tmp_path / "other"
+    (other / "tests").mkdir(parents=True)
+    (other / "tests" / "conftest.py").write_text("# the user's own fixtures\n")
+    (other / "model.yaml").write_text((pkg / "model.yaml").read_text())
+    code, out = _rap("generate", "model.yaml", "--package", "kept", cwd=other)
+    assert code == 0, out
+    assert "tests/conftest.py" in out
+    assert (other / ".rap/previous/tests/conftest.py").read_text() == "# the user's own fixtures\n"

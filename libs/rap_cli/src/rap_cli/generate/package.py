@@ -12,6 +12,8 @@ anything is written.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import subprocess
 import sys
 from dataclasses import dataclass, field
@@ -229,6 +231,27 @@ def generate_package(
             f"the previous version of each of the {len(changed)} rewritten file(s) with user "
             f"regions is in {backup} (code outside the regions is not kept)"
         )
+    # a file rap rewrites whole ("always") that is not as rap last wrote it (edited by
+    # hand, or a file of the user's at that place) is kept in the backup first
+    manifest_path = out / ".rap" / "written.json"
+    manifest = _read_manifest(manifest_path)
+    saved: list[str] = []
+    for rel, (text, policy) in files.items():
+        path = out / rel
+        if policy != "always" or not path.exists():
+            continue
+        old = path.read_bytes()
+        if old != text.encode() and manifest.get(rel) != hashlib.sha256(old).hexdigest():
+            target = backup / rel
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_bytes(old)
+            saved.append(rel)
+    if saved:
+        result.warnings.append(
+            f"{len(saved)} file(s) rap rewrites were not as rap last wrote them: "
+            f"{', '.join(saved)}; each is kept in {backup} - move what you need into the "
+            "user regions, or into a file rap does not write"
+        )
     for rel, (text, policy) in files.items():
         path = out / rel
         if policy == "once" and path.exists():
@@ -239,6 +262,9 @@ def generate_package(
         if not path.exists() or path.read_text(encoding="utf-8") != body:
             path.write_text(body, encoding="utf-8")
             result.written.append(rel)
+        manifest[rel] = hashlib.sha256(body.encode()).hexdigest()
+    manifest_path.parent.mkdir(parents=True, exist_ok=True)
+    manifest_path.write_text(json.dumps(manifest, indent=1, sort_keys=True) + "\n")
     if not deploy_only:
         _schemas(out, package, result)
     modules = node_modules(doc.plan, package)
@@ -249,6 +275,18 @@ def generate_package(
                 f"its check (region 'check' of {package}/nodes/{modules[name]}.py)"
             )
     return result
+
+
+def _read_manifest(path: Path) -> dict[str, str]:
+    """What rap last wrote in a package: file -> SHA-256 (empty when unreadable: every
+    file rap rewrites that differs is then kept before it is)."""
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    if not isinstance(data, dict):
+        return {}
+    return {str(k): str(v) for k, v in data.items() if isinstance(v, str)}
 
 
 def _refuse_unknown_types(doc: PlanDocument, plan: DeploymentPlan, w: Wiring, package: str) -> None:
