@@ -194,7 +194,10 @@ class KafkaLink:
                         await deliver(frame)
                 offsets[tp] = OffsetAndMetadata(records[-1].offset + 1, "")
             try:
-                with anyio.fail_after(TIMEOUT_S):
+                # shielded: aiokafka runs the commit in a task of its own, which a
+                # cancelled commit() would leave failing with nobody to hear it (a stop
+                # waits for the commit instead, TIMEOUT_S at most)
+                with anyio.CancelScope(shield=True), anyio.fail_after(TIMEOUT_S):
                     await consumer.commit(offsets)
             except (KafkaError, TimeoutError) as exc:
                 raise LinkDown(
