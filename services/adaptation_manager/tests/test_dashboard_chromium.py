@@ -83,7 +83,10 @@ async def test_the_page_shows_the_lidar_loop_and_pauses_and_resumes_a_component(
     async with rap_up(model_copy(MODEL, tmp_path), run, timeout=60) as out:
         with anyio.fail_after(60):
             _, found = await out.match(r"dashboard: (http://127\.0\.0\.1:\d+/)")
-        url = found.group(1)
+            url = found.group(1)
+            # rap up says where the dashboard will be as it starts the manager; the page
+            # is there once the manager says it is ready (a slow start refused the page)
+            await out.match(rf"ready: system '{SYSTEM}', dashboard {re.escape(url)}")
         edge = json.loads((run / "edge" / "up.json").read_text())
         assert edge["dashboard"] == url
         assert "manager" in {c["name"] for c in edge["children"]}
