@@ -10,9 +10,12 @@ from pathlib import Path
 import jsonschema
 import msgspec
 import pytest
+from rap_cli.aadl import parse_aadl
+from rap_cli.designs import checked_import
 from rap_cli.exporters.aadl import PROPERTY_SET
 from rap_cli.importers import Imported
 from rap_cli.importers.aadl import import_aadl
+from rap_cli.importers.aadl_rap import BUILTIN_SOURCE, builtin_property_sets
 from rap_schemas.maplek import Stage
 from rap_schemas.model import model_findings
 from rap_schemas.plan import DeploymentPlan, plan_findings
@@ -409,3 +412,182 @@ def test_rap_properties_decide_over_inference_and_stay_out_of_properties(
     port = comp.ports["scan-in"]
     assert (port.type, port.properties) == ("rap.LaserScan/2", {"Opaque_Prop": "3"})
     assert plan.messages == {}  # a wire type is no message
+
+
+_STAGED = """
+package s
+public
+  with RAP;
+  process analysis
+  features
+    go: in event port {RAP::Topic => "new-data";};
+  properties
+    RAP::Writes => ("anomaly");
+  end analysis;
+  process implementation analysis.impl
+  subcomponents
+    fast: thread worker {Dispatch_Protocol => Periodic; Period => 100 ms;};
+    slow: thread worker {Dispatch_Protocol => Periodic; Period => 500 ms;};
+  end analysis.impl;
+  process plan
+  properties
+    RAP::Stage => plan;
+    RAP::Dispatch => sporadic;
+    RAP::Rate_Hz => 2.0;
+  end plan;
+  process implementation plan.impl
+  subcomponents
+    tick: thread worker {Dispatch_Protocol => Periodic; Period => 100 ms;};
+  end plan.impl;
+  thread worker
+  end worker;
+  system top
+  end top;
+  system implementation top.impl
+  subcomponents
+    analysis: process analysis.impl;
+    plan: process plan.impl;
+  properties
+    RAP::Knowledge_Backend => "memory";
+  end top.impl;
+end s;
+"""
+
+
+def test_rap_property_set_is_built_in(tmp_path: Path) -> None:
+    # no RAP.aadl among the files: the importer knows the set `rap export aadl` writes
+    imported = import_aadl(_write(tmp_path, d=_RAP_DESIGN))
+    assert [str(d) for d in imported.diagnostics if d.severity != "note"] == []
+    comp = _plan(imported).components["robot-1"]
+    assert (comp.role, comp.reads) == ("managed", ["laser_scan"])
+    # a RAP.aadl of the user's own is used instead, even one that differs
+    own = PROPERTY_SET.replace("end RAP;", "  Extra: aadlstring applies to (all);\nend RAP;")
+    imported = import_aadl(_write(tmp_path, RAP=own, d=_RAP_DESIGN))
+    assert [str(d) for d in imported.diagnostics if d.severity != "note"] == []
+    assert "robot-1" in _plan(imported).components
+    # the built-in set is added only for a design that names RAP and does not declare it
+    named, _ = parse_aadl(_RAP_DESIGN, "d.aadl")
+    bare, _ = parse_aadl(_RAP_DESIGN.replace("with RAP;", ""), "d.aadl")
+    given, _ = parse_aadl(PROPERTY_SET, "RAP.aadl")
+    assert named is not None
+    assert bare is not None
+    assert given is not None
+    assert [f.source for f in builtin_property_sets([named])] == [BUILTIN_SOURCE]
+    assert builtin_property_sets([bare]) == []
+    assert builtin_property_sets([named, given]) == []
+
+
+def test_a_process_without_rap_stage_gets_its_stage_and_dispatch_inferred(
+    tmp_path: Path,
+) -> None:
+    plan = _plan(import_aadl(_write(tmp_path, s=_STAGED)))
+    analysis = plan.components["analysis"]
+    assert analysis.stage == Stage.ANALYSE  # from its name: RAP::Writes says no stage
+    assert analysis.writes == ["anomaly"]
+    assert analysis.dispatch is not None
+    assert (analysis.dispatch.kind, analysis.dispatch.rate_hz) == ("periodic", 10.0)
+    threads = {
+        n: (t.dispatch.kind, t.dispatch.rate_hz) for n, t in analysis.threads.items() if t.dispatch
+    }
+    assert threads == {"fast": ("periodic", 10.0), "slow": ("periodic", 2.0)}
+    staged = plan.components["plan"]
+    assert staged.stage == Stage.PLAN
+    assert staged.dispatch is not None  # RAP::Dispatch and RAP::Rate_Hz win over the thread's
+    assert (staged.dispatch.kind, staged.dispatch.rate_hz) == ("sporadic", 2.0)
+    assert staged.threads["tick"].dispatch is not None
+    # the root says the design says everything: nothing is inferred
+    said = _STAGED.replace('RAP::Knowledge_Backend => "memory";', "RAP::Infer => false;")
+    plan = _plan(import_aadl(_write(tmp_path, s=said)))
+    analysis = plan.components["analysis"]
+    assert (analysis.stage, analysis.dispatch) == (None, None)
+    assert set(analysis.threads) == {"fast", "slow"}  # threads keep their own dispatch
+    assert analysis.threads["fast"].dispatch is not None
+
+
+_UNITS = """
+package u
+public
+  with Base_Types, Data_Model, RAP;
+  data Time
+  properties
+    Data_Model::Data_Representation => Float;
+    Data_Model::Measurement_Unit => "s";
+  end Time;
+  data Fix
+  end Fix;
+  data implementation Fix.impl
+  subcomponents
+    t: data Time;
+    x: data Base_Types::Float_64 {
+      RAP::Doc => "North position."; Data_Model::Measurement_Unit => "m";};
+    n: data Base_Types::Integer_64 {RAP::Constraints => "ge=1";};
+    w: data Base_Types::Float_64 {RAP::Constraints => "ge=0.0; le=2.5";};
+  end Fix.impl;
+end u;
+"""
+
+
+def test_measurement_units_end_the_field_docs_and_constraints_keep_their_type(
+    tmp_path: Path,
+) -> None:
+    plan = _plan(import_aadl(_write(tmp_path, u=_UNITS)))
+    fields = plan.messages["Fix"].fields
+    assert (fields["t"].doc, fields["x"].doc) == ("unit: s", "North position. (unit: m)")
+    assert (fields["n"].ge, fields["w"].ge, fields["w"].le) == (1, 0.0, 2.5)
+    assert (type(fields["n"].ge), type(fields["w"].ge)) == (int, float)
+
+
+_BUS_REACH = """
+package n
+public
+  process P
+  features
+    o: out data port;
+    i: in data port;
+  end P;
+  bus Net
+  end Net;
+  processor CPU
+  features
+    link: requires bus access Net;
+  end CPU;
+  system top
+  end top;
+  system implementation top.impl
+  subcomponents
+    p: process P;
+    q: process P;
+    a: processor CPU;
+    b: processor CPU;
+    net: bus Net;
+  connections
+    c1: port p.o -> q.i;
+    c2: port q.o -> p.i;
+    b1: bus access net <-> a.link;
+  properties
+    Actual_Processor_Binding => (reference (a)) applies to p;
+    Actual_Processor_Binding => (reference (b)) applies to q;
+    Actual_Connection_Binding => (reference (net)) applies to c1;
+  end top.impl;
+end n;
+"""
+
+
+def test_check_reports_a_connection_bound_to_a_bus_that_misses_a_node(tmp_path: Path) -> None:
+    imported = import_aadl(_write(tmp_path, n=_BUS_REACH))
+    plan = _plan(imported)
+    assert (plan.buses["net"].nodes, plan.connections[0].bus) == (["a"], "net")
+    checked = checked_import(imported, str(tmp_path))
+    found = [d for d in checked.diagnostics if "which the bus does not join" in d.message]
+    assert len(found) == 1, [str(d) for d in checked.diagnostics]
+    assert found[0].severity == "warning"
+    assert "q.i runs on compute node 'b'" in found[0].message
+    assert Path(found[0].file).name == "n.aadl"
+    assert found[0].line > 0
+    # joined to both nodes, the bus carries it without a word
+    both = _BUS_REACH.replace(
+        "b1: bus access net <-> a.link;",
+        "b1: bus access net <-> a.link;\n    b2: bus access net <-> b.link;",
+    )
+    checked = checked_import(import_aadl(_write(tmp_path, n=both)), str(tmp_path))
+    assert not [d for d in checked.diagnostics if "does not join" in d.message]

@@ -75,9 +75,9 @@ def test_rap_new_scaffolds_a_package_that_passes_its_own_tests(starter: Path) ->
 
 def test_the_execute_stage_acts_only_through_the_gate(starter: Path) -> None:
     text = (starter / "plant/nodes/execute.py").read_text()
-    assert "gate = ApprovalGate(legitimators=['legitimate']" in text
+    assert 'gate = ApprovalGate(\n    legitimators=["legitimate"],' in text
     assert "@gate.on_approved(node, plan=messages.Setpoint)" in text
-    assert "on_event('approved-setpoint')" not in text
+    assert 'on_event("approved-setpoint")' not in text
     legit = (starter / "plant/nodes/legitimate.py").read_text()
     assert "@legitimate(node, plan=messages.Setpoint)" in legit
 
@@ -150,7 +150,7 @@ def test_user_code_survives_regeneration(tmp_path: Path) -> None:
     assert readme.read_text() == "my own readme\n"
     # the edited, regenerated package passes its tests (the new output is expected too)
     assert (
-        "await h.expect_event('alarm', after=mark)" in (pkg / "tests/test_analyse.py").read_text()
+        'await h.expect_event("alarm", after=mark)' in (pkg / "tests/test_analyse.py").read_text()
     )
     run = _pytest(pkg)
     assert run.returncode == 0, run.stdout + run.stderr
@@ -173,7 +173,7 @@ def test_broken_region_markers_refuse_the_generation(tmp_path: Path) -> None:
     before = (pkg / "broken/messages.py").stat().st_mtime_ns
     code, out = _rap("generate", "model.yaml", cwd=pkg)
     assert code == 2
-    assert "plan.py:96: region" in out
+    assert "plan.py:98: region" in out
     assert "close that one first" in out
     assert "nothing was written" in out
     assert (pkg / "broken/messages.py").stat().st_mtime_ns == before
@@ -189,6 +189,11 @@ def test_rap_new_from_a_design_generates_a_package_that_passes_its_tests(tmp_pat
     assert code == 0, out
     pkg = tmp_path / "fromdesign"
     assert (pkg / "model.yaml").is_file()
+    # the header names the design relative to the model, not by this machine's path
+    header = (pkg / "model.yaml").read_text().splitlines()[0]
+    named = header.split("imported from ", 1)[1].split(" by rap new", 1)[0]
+    assert not Path(named).is_absolute(), header
+    assert (pkg / named).resolve() == design.resolve()
     run = _pytest(pkg)
     assert run.returncode == 0, run.stdout + run.stderr
 
@@ -306,6 +311,23 @@ def test_the_legitimate_stage_refuses_a_plan_beyond_the_model_limits(tmp_path: P
     assert "7 passed" in run.stdout
 
 
+def test_the_placeholder_check_warning_goes_once_the_check_is_written(tmp_path: Path) -> None:
+    code, out = _rap("new", "judged", cwd=tmp_path)
+    assert code == 0, out
+    assert "approves every well-formed plan until you write its check" in out
+    pkg = tmp_path / "judged"
+    module = pkg / "judged" / "nodes" / "legitimate.py"
+    text = module.read_text()
+    start = text.index("# placeholder: approves every plan")
+    end = text.index("# endregion user: check")
+    mine = "if proposal.plan is None:\n        return 'no plan'\n    return None\n    "
+    module.write_text(text[:start] + mine + text[end:])
+    code, out = _rap("generate", "model.yaml", cwd=pkg)
+    assert code == 0, out
+    assert "approves every well-formed plan" not in out
+    assert "return 'no plan'" in module.read_text()
+
+
 def test_a_copied_package_regenerates_its_own_package_not_one_named_after_the_folder(
     tmp_path: Path,
 ) -> None:
@@ -364,31 +386,212 @@ def test_a_region_whose_port_left_the_model_is_reported_and_the_old_file_kept(
 
 
 def test_a_file_rap_rewrites_is_kept_when_it_is_not_as_rap_wrote_it(tmp_path: Path) -> None:
-    """rap generate rewrites some files whole (tests/conftest.py, messages, deploy/): one
-    edited by hand since, or a file of the user's at that place, is kept in
-    .rap/previous first and named in a warning; one as rap wrote it is rewritten
-    quietly."""
+    """rap generate rewrites some files whole (messages, samples, deploy/): one edited by
+    hand since, or a file of the user's at that place, is kept in .rap/previous first and
+    named in a warning; one as rap wrote it is rewritten quietly. tests/conftest.py has
+    regions: the user's fixtures stay in it."""
     code, out = _rap("new", "kept", cwd=tmp_path)
     assert code == 0, out
     pkg = tmp_path / "kept"
-    conftest = pkg / "tests" / "conftest.py"
-    generated = conftest.read_text()
+    samples = pkg / "kept" / "samples.py"
+    generated = samples.read_text()
     code, out = _rap("generate", "model.yaml", cwd=pkg)
     assert code == 0, out
     assert "not as rap last wrote them" not in out  # untouched: nothing to keep
-    mine = generated + "\n\n@pytest.fixture\ndef ship() -> str:\n    return 'mine'\n"
-    conftest.write_text(mine)
+    mine = generated + "\n\nEXTRA = 'mine'\n"
+    samples.write_text(mine)
+    conftest = pkg / "tests" / "conftest.py"
+    fixture = "@pytest.fixture\ndef ship() -> str:\n    return 'mine'\n"
+    conftest.write_text(
+        conftest.read_text().replace(
+            "# region user: fixtures\n", f"# region user: fixtures\n{fixture}"
+        )
+    )
     code, out = _rap("generate", "model.yaml", cwd=pkg)
     assert code == 0, out
-    assert "1 file(s) rap rewrites were not as rap last wrote them: tests/conftest.py" in out
-    assert (pkg / ".rap/previous/tests/conftest.py").read_text() == mine
-    assert conftest.read_text() == generated
+    assert "1 file(s) rap rewrites were not as rap last wrote them: kept/samples.py" in out
+    assert (pkg / ".rap/previous/kept/samples.py").read_text() == mine
+    assert samples.read_text() == generated
+    assert fixture in conftest.read_text()
     # a package generated into a folder that already had its own file there
     other = tmp_path / "other"
-    (other / "tests").mkdir(parents=True)
-    (other / "tests" / "conftest.py").write_text("# the user's own fixtures\n")
+    (other / "kept").mkdir(parents=True)
+    (other / "kept" / "samples.py").write_text("# the user's own samples\n")
     (other / "model.yaml").write_text((pkg / "model.yaml").read_text())
     code, out = _rap("generate", "model.yaml", "--package", "kept", cwd=other)
     assert code == 0, out
-    assert "tests/conftest.py" in out
-    assert (other / ".rap/previous/tests/conftest.py").read_text() == "# the user's own fixtures\n"
+    assert "kept/samples.py" in out
+    assert (other / ".rap/previous/kept/samples.py").read_text() == "# the user's own samples\n"
+
+
+REPO = Path(__file__).resolve().parents[3]
+SHIP_DESIGN = REPO / "examples" / "ship_motion" / "design"
+
+
+def _ruff(package: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    """``ruff`` with the repository's settings, run in the package as its own project."""
+    return subprocess.run(
+        [sys.executable, "-m", "ruff", *args, "--config", str(REPO / "pyproject.toml"), "."],
+        cwd=package,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+
+
+def test_generated_packages_pass_ruff_and_regenerate_without_churn(tmp_path: Path) -> None:
+    pytest.importorskip("ruff")  # a dev dependency of the repository
+    code, out = _rap("new", "plant", cwd=tmp_path)
+    assert code == 0, out
+    code, out = _rap("new", "ship", "--from", str(SHIP_DESIGN), cwd=tmp_path)
+    assert code == 0, out
+    for pkg in (tmp_path / "plant", tmp_path / "ship"):
+        lint = _ruff(pkg, "check", "--no-cache")
+        assert lint.returncode == 0, lint.stdout + lint.stderr
+        fmt = _ruff(pkg, "format", "--check", "--no-cache")
+        assert fmt.returncode == 0, fmt.stdout + fmt.stderr
+    ship = tmp_path / "ship"
+    messages = (ship / "ship" / "messages.py").read_text()
+    # constraint literals keep their type: ints stay ints, floats stay floats
+    assert "samples: Annotated[int, msgspec.Meta(ge=0, le=9223372036854775807)]" in messages
+    assert "training_error: Annotated[float, msgspec.Meta(ge=0.0)]" in messages
+    plant = (tmp_path / "plant" / "plant" / "messages.py").read_text()
+    assert "msgspec.Meta(ge=-10, le=10," in plant
+    # the design's Measurement_Unit ends the docs of its Time fields
+    assert 'trained_from: Annotated[float, msgspec.Meta(description="unit: s")]' in messages
+    # regenerating from the written model changes nothing
+    before = {p: p.read_text() for p in ship.rglob("*") if p.is_file() and ".rap" not in p.parts}
+    code, out = _rap("generate", "model.yaml", cwd=ship)
+    assert code == 0, out
+    after = {p: p.read_text() for p in before}
+    assert [p.name for p in before if before[p] != after[p]] == []
+
+
+GATE_PROBE = """
+import time
+from rap_schemas import PlanProposal, Verdict
+from {pkg} import messages
+from {pkg}.nodes import execute
+
+now = time.time_ns()
+plan = messages.Setpoint(target=1.0)
+old = PlanProposal(
+    plan_uid=b"u" * 16, plan_type=plan.TYPE, plan=plan, proposer="plan", created=now - 30 * 10**9
+)
+verdict = Verdict(
+    plan_uid=old.plan_uid, approved=True, legitimator="legitimate", ts=now, proposal=old
+)
+print(execute.Config().plan_max_age, execute.gate.check(verdict, "legitimate", now))
+"""
+
+
+@pytest.mark.parametrize(("config", "says"), [("", "1.0 plan"), ("60", "60.0 None")])
+def test_the_models_plan_max_age_reaches_the_gate(tmp_path: Path, config: str, says: str) -> None:
+    """A model whose execute stage says ``config: {plan_max_age: 60}``: its generated gate
+    takes a 30 s old approval (the default 1 s would refuse it as stale)."""
+    from rap_cli.generate_cli import STARTER
+
+    model = STARTER.format(name="gated")
+    if config:
+        model = model.replace(
+            "    doc: Acts only on set points the legitimate stage approved (the gate).\n",
+            "    doc: Acts only on set points the legitimate stage approved (the gate).\n"
+            f"    config: {{plan_max_age: {config}}}\n",
+        )
+        assert f"plan_max_age: {config}" in model
+    (tmp_path / "model.yaml").write_text(model)
+    code, out = _rap("generate", "model.yaml", "--package", "gated", cwd=tmp_path)
+    assert code == 0, out
+    (tmp_path / "probe_gate.py").write_text(GATE_PROBE.format(pkg="gated"))
+    run = subprocess.run(
+        [sys.executable, "probe_gate.py"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.startswith(says), run.stdout
+    if not config:
+        assert "is stale" in run.stdout
+
+
+def test_a_src_layout_project_gets_its_package_in_src(tmp_path: Path) -> None:
+    proj = tmp_path / "proj"
+    (proj / "src" / "proj").mkdir(parents=True)
+    mine = '"""The project\'s own package: rap generate writes next to its modules."""\n'
+    (proj / "src" / "proj" / "__init__.py").write_text(mine)
+    (proj / "src" / "proj" / "physics.py").write_text("G = 9.81\n")
+    (tmp_path / "model.yaml").write_text(_starter_model("proj"))
+    code, out = _rap("generate", "model.yaml", "-o", "proj", "--package", "proj", cwd=tmp_path)
+    assert code == 0, out
+    assert not (proj / "proj").exists()
+    for rel in ("messages.py", "samples.py", "nodes/execute.py", "schemas/Setpoint.schema.json"):
+        assert (proj / "src" / "proj" / rel).is_file(), rel
+    assert (proj / "src" / "proj" / "__init__.py").read_text() == mine  # the user's, kept
+    assert (proj / "tests" / "test_loop.py").is_file()
+    assert (proj / "deploy" / "Dockerfile").is_file()
+    assert "COPY src/proj/ proj/" in (proj / "deploy" / "Dockerfile").read_text()
+    assert "kept as you have them: src/proj/__init__.py" in out
+    # the generated tests find the package in src/ without an install
+    run = _pytest(proj)
+    assert run.returncode == 0, run.stdout + run.stderr
+    # regenerating from the package's own model finds the package in src/ again
+    code, out = _rap("generate", "model.yaml", cwd=proj)
+    assert code == 0, out
+    assert not (proj / "proj").exists()
+
+
+def _starter_model(name: str) -> str:
+    from rap_cli.generate_cli import STARTER
+
+    return STARTER.format(name=name)
+
+
+def test_the_package_of_the_target_folder_itself_is_not_taken(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from rap_cli.generate_cli import _taken
+
+    (tmp_path / "src" / "ownpkg").mkdir(parents=True)
+    (tmp_path / "src" / "ownpkg" / "__init__.py").write_text("")
+    monkeypatch.syspath_prepend(str(tmp_path / "src"))  # installed, say as editable
+    assert _taken("ownpkg", tmp_path) is None
+    assert _taken("ownpkg", tmp_path / "elsewhere") is not None
+    assert _taken("json", tmp_path) is not None
+
+
+def test_string_literals_and_unused_imports_as_ruff_wants_them() -> None:
+    import ast
+
+    from rap_cli.generate.pyfmt import prune_imports, q
+
+    for text, literal in [
+        ("plain", '"plain"'),
+        ("it's", '"it\'s"'),
+        ('say "hi"', "'say \"hi\"'"),
+        ("both ' and \"", '"both \' and \\""'),
+        ("line\nbreak\\", '"line\\nbreak\\\\"'),
+    ]:
+        assert q(text) == literal
+        assert ast.literal_eval(q(text)) == text
+    module = (
+        "from __future__ import annotations\n\n"
+        "import enum\nimport logging\n\n"
+        "from rap_schemas import Empty, PlanProposal, Verdict\n\n"
+        "from .. import messages\nfrom ..samples import sample\n\n"
+        "# region user: imports\nfrom os import path\n\n# endregion user: imports\n\n"
+        "log = logging.getLogger(__name__)\n\n\n"
+        "def f(p: PlanProposal) -> None:\n"
+        "    # region user: f\n    print(sample, path)\n    # endregion user: f\n"
+    )
+    pruned = prune_imports(module)
+    assert "import enum" not in pruned
+    assert "from rap_schemas import PlanProposal\n" in pruned  # Empty, Verdict: unused
+    assert "from .. import messages" not in pruned
+    assert "from ..samples import sample\n" in pruned  # the user's region uses it
+    assert "from os import path\n" in pruned  # a region's own imports are the user's
+    assert "\n\n\n\n" not in pruned.split("log =")[0]
+    assert prune_imports(pruned) == pruned

@@ -7,6 +7,7 @@ from __future__ import annotations
 import time
 from typing import Any
 
+import msgspec
 import pytest
 from rap_schemas import (
     PLAN_REJECTED,
@@ -226,3 +227,42 @@ async def test_two_plan_types_go_through_two_gates_on_events_of_their_own() -> N
         assert not h.of(keys.Kind.EVENT, PLAN_REJECTED)
         assert not h.of(keys.Kind.EVENT, "dock-no")
         assert (spin_gate.stats.malformed, dock_gate.stats.malformed) == (0, 0)
+
+
+class ExecuteConfig(msgspec.Struct, frozen=True, kw_only=True):
+    plan_max_age: float | None = 1.0
+
+
+async def test_the_gate_takes_max_age_from_the_node_as_configured() -> None:
+    """``max_age_config``: the model's config (applied by the runner through
+    ``Node.configure``) decides how old an approved plan may be, not the default."""
+    executor = Node("executor", stage="execute", config=ExecuteConfig())
+    gate = ApprovalGate(legitimators={"legitimate"}, max_age_config="plan_max_age")
+    docked: list[Dock] = []
+
+    @gate.on_approved(executor)
+    async def act(ctx: Context, proposal: PlanProposal[Dock]) -> None:
+        docked.append(proposal.plan)
+
+    executor.configure({"plan_max_age": 60.0})
+    as_legit, key = Sealer("legitimate"), keys.event(S, "verdict")
+    async with Harness(system=S) as h:
+        await h.start(executor)
+        for n, (age, station) in enumerate([(30, "A"), (30, "B"), (0, "C")]):
+            if n == 1:
+                executor.configure({"plan_max_age": 10.0})  # rap admin config, say
+            if n == 2:
+                executor.configure({"plan_max_age": None})  # no limit
+            created = time.time_ns() - age * 10**9 - (2 - n)  # each newer than the last
+            verdict = approval(Dock(station=station), created=created, uid=bytes([n]) * 16)
+            payload, _ = as_legit.seal_message(key, verdict)
+            await h.publish_raw(key, payload)
+            await h.wait_for(lambda r, n=n: gate.stats.approved + gate.stats.stale > n)
+    assert [d.station for d in docked] == ["A", "C"]
+    assert (gate.stats.approved, gate.stats.stale) == (2, 1)
+
+
+def test_max_age_config_must_name_a_field_of_the_nodes_config() -> None:
+    gate = ApprovalGate(max_age_config="plan_max_age")
+    with pytest.raises(HandlerError, match="max_age_config='plan_max_age' names no field"):
+        gate.on_approved(Node("executor", stage="execute"), plan=Dock)

@@ -164,7 +164,8 @@ class KbReply(msgspec.Struct, frozen=True, kw_only=True, omit_defaults=True):
     code: str = ""
     """Machine-readable error kind: bad-request, conflict, not-found, too-large,
     integrity, unavailable (not stored), unknown (a durable write whose outcome the
-    service could not learn before its budget ran out: it may have been stored)."""
+    service could not learn before its budget ran out: it may have been stored), denied
+    (a model store request from an identity the system model does not grant it)."""
     version: int = 0
     record: KbRecord | None = None
     records: list[KbRecord] = []

@@ -432,6 +432,8 @@ def _connection_findings(plan: DeploymentPlan) -> Iterator[ModelFinding]:
                 f"connection {c.name or i} travels over bus {c.bus!r}, which the model "
                 f"does not define - use one of {', '.join(plan.buses) or '(none)'}",
             )
+        elif c.bus is not None:
+            yield from _bus_reach(plan, i, c.bus)
         if c.name is not None:
             if c.name in names:
                 yield ModelFinding(
@@ -480,6 +482,27 @@ def _connection_findings(plan: DeploymentPlan) -> Iterator[ModelFinding]:
                     "it - connect it, or remove the port if nothing will",
                     key=True,
                 )
+
+
+def _bus_reach(plan: DeploymentPlan, index: int, bus: str) -> Iterator[ModelFinding]:
+    """Connection ``index`` bound to ``bus``: a warning for each end whose component runs
+    on a compute node the bus does not join (AADL's Actual_Connection_Binding to a bus
+    that does not reach the processors the two ends are bound to)."""
+    c = plan.connections[index]
+    joined = plan.buses[bus].nodes
+    for text in dict.fromkeys((c.from_, c.to)):
+        spec = plan.components.get(_split(plan, text)[0])
+        node = spec.node if spec is not None else None
+        if node is None or node not in plan.compute_nodes or node in joined:
+            continue
+        yield ModelFinding(
+            ("connections", index, "bus"),
+            "warning",
+            f"connection {c.name or index} travels over bus {bus!r}, but {text} runs on "
+            f"compute node {node!r}, which the bus does not join (it joins "
+            f"{', '.join(joined) or 'no node'}) - bind the connection to a bus that joins "
+            f"both ends' nodes, or join {node!r} to {bus!r}",
+        )
 
 
 def _case_findings(plan: DeploymentPlan) -> Iterator[ModelFinding]:

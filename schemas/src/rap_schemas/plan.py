@@ -37,6 +37,7 @@ import msgspec
 
 from . import keys
 from .bridge import BridgeSpec
+from .knowledge import MODELS_PREFIX
 from .limits import MAX_MESSAGE_BYTES, MAX_YAML_BYTES
 from .maplek import Stage
 from .yamlconf import (
@@ -50,6 +51,7 @@ from .yamlconf import (
 
 __all__ = [
     "ENDPOINT",
+    "MODEL_ACCESS",
     "MODULE_SPEC",
     "BusSpec",
     "ComponentSpec",
@@ -63,6 +65,8 @@ __all__ = [
     "KnowledgeSpec",
     "MessageSpec",
     "ModeTransitionSpec",
+    "ModelAccess",
+    "ModelName",
     "PlanDocument",
     "PlanError",
     "PortDirection",
@@ -110,6 +114,25 @@ _SampleLimit = Annotated[
         extra_json_schema={"minimum": _MIN_SAMPLE_LIMIT, "maximum": _MAX_SAMPLE_LIMIT},
     ),
 ]
+ModelName = Annotated[
+    str,
+    msgspec.Meta(
+        description="A model of the model store: key chunks of letters, digits and "
+        "'_.-~+:@=%,', separated by single '/'.",
+        examples=["occlusion", "detector/yolo"],
+        extra_json_schema={"pattern": f"^{keys._CHUNK.pattern}(/{keys._CHUNK.pattern})*$"},
+    ),
+]
+ModelAccess = Annotated[
+    str,
+    msgspec.Meta(
+        description="`read` (get and list its versions) or `write` (also put new versions, "
+        "pin and roll back).",
+        extra_json_schema={"enum": ["read", "write"]},
+    ),
+]
+MODEL_ACCESS = ("read", "write")
+"""What a component may do with a model of the model store (``ComponentSpec.models``)."""
 Endpoint = Annotated[
     str,
     msgspec.Meta(
@@ -258,19 +281,20 @@ class ConnectionSpec(_Plan, frozen=True, kw_only=True):
 class FieldSpec(_Plan, frozen=True, kw_only=True):
     """A field of a message. ``type``: ``bool``, ``int``, ``int8`` .. ``uint64``,
     ``float``, ``float32``, ``str``, ``bytes``, a message or enumeration name,
-    ``list[T]``, ``list[T, N]`` (exactly N items) or ``optional[T]``."""
+    ``list[T]``, ``list[T, N]`` (exactly N items) or ``optional[T]``. A bound keeps
+    the type it is written with (``ge: 1`` stays an int, ``ge: 0.0`` a float)."""
 
     type: str
     """Its type (see above)."""
     doc: str = ""
     """Its documentation."""
-    ge: float | None = None
+    ge: int | float | None = None
     """Least value allowed (numbers)."""
-    le: float | None = None
+    le: int | float | None = None
     """Greatest value allowed (numbers)."""
-    gt: float | None = None
+    gt: int | float | None = None
     """Values must be above this (numbers)."""
-    lt: float | None = None
+    lt: int | float | None = None
     """Values must be below this (numbers)."""
     min_length: Annotated[int, msgspec.Meta(ge=0)] | None = None
     """Least length (strings, bytes, lists)."""
@@ -384,6 +408,11 @@ class ComponentSpec(_Plan, frozen=True, kw_only=True):
     """Knowledge keys it reads."""
     writes: list[str] = []
     """Knowledge keys it writes."""
+    models: dict[ModelName, ModelAccess] = {}
+    """Models of the knowledge service's model store it uses, each ``read`` (get and list
+    its versions) or ``write`` (also put new versions, pin and roll back), e.g.
+    ``{occlusion: read}``. With ``fabric.tls`` the access control lets it use these and
+    no other (operators may use every model)."""
     dispatch: Dispatch | None = None
     """When it runs."""
     run: list[str] = []
@@ -651,6 +680,30 @@ def plan_findings(plan: DeploymentPlan) -> Iterator[Finding]:
                     "the command as a list, e.g. ['{python}', '-m', 'sim_world']",
                     False,
                 )
+        yield from _model_findings(name, comp)
+
+
+def _model_findings(name: str, comp: ComponentSpec) -> Iterator[Finding]:
+    """A component's ``models:``: store names, each ``read`` or ``write``."""
+    for model, access in comp.models.items():
+        loc = ("components", name, "models", model)
+        try:
+            keys.kb("x", f"{MODELS_PREFIX}/{model}")
+        except keys.KeyError_:
+            yield (
+                loc,
+                f"component {name!r}: {model!r} is not a model name; use key chunks of "
+                "letters, digits and '_.-~+:@=%,' separated by single '/' (no wildcards "
+                "'*', '$', '#', '?'), e.g. 'occlusion' or 'detector/yolo'",
+                True,
+            )
+        if access not in MODEL_ACCESS:
+            yield (
+                loc,
+                f"component {name!r}: model {model!r} has access {access!r}; write read "
+                "(get and list its versions) or write (also put, pin and roll back)",
+                False,
+            )
 
 
 def _name_findings(loc: Location, what: str, name: str) -> Iterator[Finding]:

@@ -42,6 +42,11 @@ def run(*args: str, timeout: float = 30) -> subprocess.CompletedProcess[str]:
         (["--backend", "memcached", "--memcached-url", "redis://x"], "write memcached://HOST"),
         (["--backend", "kafka", "--kafka-url", "redis://x"], "write kafka://HOST"),
         (["--backend", "kafka", "--kafka-topic", "a/b"], "Kafka topic 'a/b'"),
+        (
+            ["--model-grants", '{"edge.runner": {"m": "all"}}'],
+            "--model-grants: Invalid enum value 'all'",
+        ),
+        (["--model-grants", "edge.runner=m"], "give JSON such as"),
     ],
 )
 def test_mistakes_are_one_line_and_exit_2(args: list[str], says: str) -> None:

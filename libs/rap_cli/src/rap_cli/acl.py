@@ -21,9 +21,12 @@ may (ingress, at its router):
   their declared outputs, their ``trace/<c>`` and ``log/<c>`` keys; subscribe to their
   declared inputs; read and write (the write stream, catch-up and durable queries) only
   their declared ``reads`` and ``writes`` knowledge keys and their snapshot
-  (``admin/snapshot/<c>``); serve their ``admin/<c>/*`` verbs; declare the liveliness
-  token ``alive/<c>``. A verdict key is the Legitimate stage's output, so only the
-  identity that hosts it may publish one.
+  (``admin/snapshot/<c>``); query the model store on the keys of their declared
+  ``models`` (``kb/_models/<name>``: a query whether it reads or writes, so the knowledge
+  service tells the two apart, from the signed caller and :func:`model_grants`); serve
+  their ``admin/<c>/*`` verbs; declare the liveliness token ``alive/<c>``. A verdict
+  key is the Legitimate stage's output, so only the identity that hosts it may publish
+  one.
 - **knowledge**: the whole ``kb/**`` space (it is the store), its log and token.
 - **the adaptation manager**: subscribe to the whole system (it observes), query the
   ``status`` verb of every component, serve its ``trace`` verb.
@@ -33,9 +36,9 @@ may (ingress, at its router):
   messages come in from outside, subscribe to those whose messages go out, nothing else.
 - everyone: watch and query liveliness.
 
-Only operators may call admin verbs (other than the manager's status polls) or write
-reserved knowledge keys (``_...``, such as stored models). Routers log every message they
-refuse with the identity that sent it (``rap_cli.router``).
+Only operators may call admin verbs (other than the manager's status polls) or use
+reserved knowledge keys (``_...``) other than the models granted to components. Routers
+log every message they refuse with the identity that sent it (``rap_cli.router``).
 """
 
 from __future__ import annotations
@@ -44,7 +47,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
-from rap_schemas import DeploymentPlan, keys
+from rap_schemas import MODELS_PREFIX, DeploymentPlan, keys
 from rap_schemas.admin import snapshot_key
 
 from .deploy import knowledge_node, process_identity
@@ -53,6 +56,7 @@ __all__ = [
     "ALL_MESSAGES",
     "Grant",
     "access_control",
+    "model_grants",
     "process_grants",
     "process_identity",
 ]
@@ -73,10 +77,11 @@ ALL_MESSAGES = (
 MANAGER = "manager"
 """The adaptation manager's node name on the fabric (``adaptation_manager``)."""
 KNOWLEDGE = "knowledge"
+"""The knowledge service's node name on the fabric."""
 RESERVED = "_"
 """Knowledge keys that start with it (the model store, ``_models/...``) are operators'
-only, whatever a component declares."""
-"""The knowledge service's node name on the fabric."""
+only, whatever a component's ``reads`` and ``writes`` say (its ``models`` grant it
+models)."""
 
 
 @dataclass(slots=True)
@@ -134,6 +139,8 @@ def _component_keys(plan: DeploymentPlan, grant: Grant, name: str) -> None:
     for k in comp.writes:
         if not k.startswith(RESERVED):
             grant.allow(["put", "declare_subscriber", "query"], keys.kb(s, k))
+    for model in comp.models:  # read or write: a query (the service tells them apart)
+        grant.allow(["query"], keys.kb(s, f"{MODELS_PREFIX}/{model}"))
     grant.allow(["put", "declare_subscriber", "query"], keys.kb(s, snapshot_key(name)))
     grant.allow(["put"], keys.trace(s, name), keys.log(s, name))
     grant.allow(["declare_queryable", "reply"], keys.pattern(s, keys.Kind.ADMIN, f"{name}/*"))
@@ -212,6 +219,21 @@ def process_grants(plan: DeploymentPlan, *, manager: bool = True) -> dict[str, G
     for g in out.values():
         if g.kind not in ("router", "operator"):
             _everyone(plan, g)
+    return out
+
+
+def model_grants(plan: DeploymentPlan) -> dict[str, dict[str, str]]:
+    """Identity -> model name -> ``read`` or ``write``: the models of the model store
+    each process may use, from its components' ``models`` (a runner's: those of every
+    component it hosts, ``write`` winning). The knowledge service takes a model request
+    from these identities and the operators only (``--model-grants``)."""
+    out: dict[str, dict[str, str]] = {}
+    for g in process_grants(plan, manager=False).values():
+        for name in g.components:
+            for model, access in plan.components[name].models.items():
+                have = out.setdefault(g.identity, {})
+                if have.get(model) != "write":
+                    have[model] = access
     return out
 
 

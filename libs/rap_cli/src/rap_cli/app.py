@@ -26,8 +26,8 @@ app = typer.Typer(
     help="RAP's toolkit: import designs (AADL, AADL-IL, RoboChart), check and show system "
     "models, export them as AADL, generate the package that runs a model (rap new, rap "
     "generate), run it (rap up, rap down, rap health) and operate it while it runs (rap "
-    "status, config, pause, resume, restart, swap, snapshot, restore, topic, logs, trace, "
-    "record, replay, view).",
+    "status, config, pause, resume, restart, swap, snapshot, restore, models, topic, logs, "
+    "trace, record, replay, view).",
     no_args_is_help=True,
     rich_markup_mode="markdown",
     pretty_exceptions_enable=False,
@@ -268,7 +268,17 @@ def export_aadl_cmd(
 
 def _register_commands() -> None:
     """Commands that live in modules of their own (each has ``register(app)``)."""
-    from . import admin_cli, certs_cli, generate_cli, logs_cli, topic_cli, trace_cli, up, view_cli
+    from . import (
+        admin_cli,
+        certs_cli,
+        generate_cli,
+        logs_cli,
+        models_cli,
+        topic_cli,
+        trace_cli,
+        up,
+        view_cli,
+    )
 
     generate_cli.register(app)
     up.register(app)
@@ -278,6 +288,7 @@ def _register_commands() -> None:
     logs_cli.register(app)
     trace_cli.register(app)
     certs_cli.register(app)
+    models_cli.register(app)
 
 
 _register_commands()

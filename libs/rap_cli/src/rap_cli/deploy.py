@@ -36,6 +36,7 @@ components with a ``module:``, and each component with ``run:`` as its own proce
 from __future__ import annotations
 
 import hashlib
+import json
 import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -446,6 +447,12 @@ def node_processes(
                 "--kafka-url",
                 resolve_url(kb.url or "kafka://127.0.0.1:9092", plan, addresses),
             ]
+        if plan.fabric.tls:  # who may use which model (the service checks identities)
+            from .acl import model_grants
+
+            grants = model_grants(plan)
+            if grants:
+                argv += ["--model-grants", json.dumps(grants, sort_keys=True)]
         argv += ["--log-level", log_level]
         at = observed("knowledge", argv)
         out.append(ProcessSpec("knowledge", "knowledge", tuple(argv), client, "knowledge", at))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Annotated
 
@@ -11,7 +12,13 @@ from rap_schemas import PlanDocument, PlanError
 from .cli import USAGE, format_option, usage
 from .designs import DesignError, load
 from .generate.names import package_name
-from .generate.package import Generated, GenerateError, generate_package, write_model
+from .generate.package import (
+    Generated,
+    GenerateError,
+    generate_package,
+    package_dir,
+    write_model,
+)
 from .model_io import CheckedModel
 
 __all__ = ["STARTER", "register"]
@@ -169,7 +176,7 @@ def register(app: typer.Typer) -> None:
                 else ""
             )
             usage(f"{out} exists and is not empty - choose a new name{hint}")
-        taken = _taken(package)
+        taken = _taken(package, out)
         if taken is not None:
             usage(
                 f"{name}: its Python package would be {package!r}, but that name is taken "
@@ -179,7 +186,7 @@ def register(app: typer.Typer) -> None:
         if source:
             checked = _checked(list(source), fmt, root)
             doc = _document(checked)
-            origin = f"imported from {', '.join(str(s) for s in source)} by rap new"
+            origin = f"imported from {', '.join(_relative(s, out) for s in source)} by rap new"
         else:
             text = STARTER.format(name=package)
             from .model_io import check_model_text
@@ -249,7 +256,8 @@ def register(app: typer.Typer) -> None:
             write_model(
                 result.plan,
                 target,
-                f"# The system model of {doc.plan.system} (rap generate {first}).\n",
+                f"# The system model of {doc.plan.system} (rap generate "
+                f"{', '.join(_relative(m, out) for m in model)}).\n",
             )
             result.written.append("model.yaml")
         _report(result)
@@ -257,20 +265,31 @@ def register(app: typer.Typer) -> None:
 
 def _existing_package(doc: PlanDocument, out: Path) -> str | None:
     """The package an earlier generation wrote into ``out`` (its components' modules
-    name ``<package>.nodes.<module>:node`` and that folder is there): the folder's name
-    may have changed since (a clone, a copy)."""
+    name ``<package>.nodes.<module>:node`` and that folder is there, in ``out`` or in
+    ``out/src``): the folder's name may have changed since (a clone, a copy)."""
     for comp in doc.plan.components.values():
         if comp.module is None:
             continue
         head, sep, _ = comp.module.partition(".nodes.")
-        if sep and head.isidentifier() and (out / head / "nodes").is_dir():
+        if sep and head.isidentifier() and (out / package_dir(out, head) / "nodes").is_dir():
             return head
     return None
 
 
-def _taken(package: str) -> str | None:
+def _relative(path: Path, out: Path) -> str:
+    """``path`` relative to the folder ``out`` the model is written in (POSIX), so that
+    the model's header records no machine's path."""
+    try:
+        return Path(os.path.relpath(path.resolve(), out.resolve())).as_posix()
+    except ValueError:  # another drive (Windows): its name alone
+        return path.name
+
+
+def _taken(package: str, out: Path) -> str | None:
     """What already answers to ``package`` on import (a module of the standard library,
-    of RAP, of an installed distribution), or None."""
+    of RAP, of an installed distribution), or None; the package of the folder ``out``
+    itself (``out/<package>``, ``out/src/<package>``: an install of that very project)
+    does not count."""
     import importlib.util
 
     try:
@@ -279,7 +298,12 @@ def _taken(package: str) -> str | None:
         return None
     if spec is None:
         return None
-    return spec.origin or (list(spec.submodule_search_locations or []) or ["a namespace"])[0]
+    where = spec.origin or (list(spec.submodule_search_locations or []) or ["a namespace"])[0]
+    own = [(out / package).resolve(), (out / "src" / package).resolve()]
+    found = Path(where).resolve()
+    if any(found == d or d in found.parents for d in own):
+        return None
+    return where
 
 
 def _with_modules(text: str, result: Generated) -> str:

@@ -436,6 +436,7 @@ class ApprovalGate:
         max_skew: float = 0.5,
         memory: int = 4096,
         guard: TrustGuard | None = None,
+        max_age_config: str | None = None,
     ) -> None:
         """``legitimators``: node names whose verdicts count (None: any sender).
         ``max_age``: seconds a plan stays executable after its creation (None: no limit).
@@ -444,8 +445,12 @@ class ApprovalGate:
         a forged date cannot make every later plan look superseded). ``memory``: how
         many executed plan uids are remembered against replay; older ones are still
         refused as superseded. ``guard``: trust-checker verdicts that veto
-        (:class:`TrustGuard`)."""
+        (:class:`TrustGuard`). ``max_age_config``: the field of the execute node's config
+        Struct that holds ``max_age`` (a number of seconds, or None): the gate then
+        takes the value the node is configured with (the model's ``config:`` when the
+        runner starts it, ``rap admin config`` while it runs) for each verdict."""
         self.guard = guard
+        self.max_age_config = max_age_config
         self.legitimators = frozenset(legitimators) if legitimators is not None else None
         self.max_age_ns = None if max_age is None else round(max_age * 1e9)
         self.max_skew_ns = round(max_skew * 1e9)
@@ -515,6 +520,14 @@ class ApprovalGate:
         ``node`` to the guard's streams, if the gate has a guard."""
         if self.guard is not None:
             self.guard.attach(node)
+        field = self.max_age_config
+        if field is not None and (
+            node.config is None or field not in type(node.config).__struct_fields__
+        ):
+            raise HandlerError(
+                f"node {node.name!r}, on_approved: max_age_config={field!r} names no field "
+                "of the node's config Struct - add the field to it, or leave max_age_config out"
+            )
 
         def register(fn: A) -> A:
             plans = _Plans(_plan_type(fn, plan, f"node {node.name!r}, on_approved"))
@@ -527,6 +540,7 @@ class ApprovalGate:
                         self.stats.malformed += 1
                         await self._refuse(ctx, verdict, why, rejected)
                         return
+                self._configured(ctx.node)
                 reason = self.check(verdict, ctx.envelope.source, ctx.clock.time_ns())
                 if reason is None:
                     assert typed is not None  # check() guarantees an approved proposal
@@ -551,6 +565,16 @@ class ApprovalGate:
             return fn
 
         return register
+
+    def _configured(self, node: Node) -> None:
+        """Take ``max_age`` from the node's config (``max_age_config``), as configured."""
+        if self.max_age_config is None or node.config is None:
+            return
+        value = getattr(node.config, self.max_age_config, None)
+        if value is None:
+            self.max_age_ns = None
+        elif isinstance(value, int | float) and not isinstance(value, bool):
+            self.max_age_ns = round(value * 1e9)
 
     async def _refuse(
         self, ctx: Context, verdict: Verdict[Any], reason: str, rejected: str

@@ -23,7 +23,7 @@ import weakref
 import zlib
 from collections.abc import Awaitable, Callable
 from types import TracebackType
-from typing import Any, Final, Protocol, TypeVar, overload
+from typing import TYPE_CHECKING, Any, Final, Protocol, TypeVar, overload
 
 import anyio
 import msgspec
@@ -67,6 +67,9 @@ from .fabric import Fabric, Subscription
 from .inbox import InboxPolicy, Overflow
 from .rejections import Rejections
 
+if TYPE_CHECKING:
+    from .identity import Signer
+
 __all__ = [
     "DURABLE_BUDGET",
     "MAX_REPLY_BYTES",
@@ -102,7 +105,8 @@ SERVICE_NODE: Final = "knowledge"
 
 class KnowledgeError(RapError):
     """A knowledge operation failed; ``code`` is the service's error kind when it
-    answered (bad-request, conflict, not-found, too-large, integrity, unavailable), or
+    answered (bad-request, conflict, not-found, too-large, integrity, unavailable,
+    denied: a model store request the system model does not grant its signer), or
     ``bad-reply`` for an answer that could not be decoded."""
 
     def __init__(self, message: str, code: str = "") -> None:
@@ -289,10 +293,15 @@ class KnowledgeClient:
         timeout: float = 2.0,
         replica_policy: InboxPolicy | None = None,
         max_value_bytes: int = MAX_VALUE_BYTES,
+        signer: Signer | None = None,
     ) -> None:
         """``timeout``: seconds a read waits for a promised version, and each request to
         the service. ``max_value_bytes``: the largest value a replica adopts (the
-        service's limit: records over it are refused here as they are there)."""
+        service's limit: records over it are refused here as they are there).
+        ``signer``: the identity the model store's requests are signed as (default: the
+        one ``RAP_AS`` names in ``RAP_CERTS`` when both are set, as under ``rap up``
+        with TLS); a knowledge service with identities takes them only signed, from an
+        operator or an identity the system model grants the model (``models:``)."""
         keys.system_pattern(system)
         self.fabric = fabric
         self.system = system
@@ -302,6 +311,8 @@ class KnowledgeClient:
         self.sealer = Sealer(writer)
         self.opener = Opener()
         self.max_value_bytes = max_value_bytes
+        self.signer = signer
+        self._signer_loaded = signer is not None
         self.rejections = Rejections(writer, log)
         """Write records refused by the replicas (bounds, bad envelopes, wrong keys)."""
         self.on_rejection: Callable[[Rejection], Awaitable[None]] | None = None
@@ -882,8 +893,7 @@ class KnowledgeClient:
         self, name: str, data: bytes, *, tags: dict[str, str] | None = None
     ) -> ModelMeta:
         digest = await _sha256(data)
-        reply = await self._ask(
-            f"{MODELS_PREFIX}/{name}",
+        reply = await self._ask_model(
             ModelPut(name=name, data=data, sha256=digest, tags=tags or {}),
             timeout=max(self.timeout, 30.0),
         )
@@ -892,10 +902,8 @@ class KnowledgeClient:
 
     async def get_model(self, name: str, version: int | None = None) -> tuple[ModelMeta, bytes]:
         """The pinned (else latest) version, or ``version``; integrity is checked."""
-        reply = await self._ask(
-            f"{MODELS_PREFIX}/{name}",
-            ModelGet(name=name, version=version),
-            timeout=max(self.timeout, 30.0),
+        reply = await self._ask_model(
+            ModelGet(name=name, version=version), timeout=max(self.timeout, 30.0)
         )
         assert reply.model is not None
         if await _sha256(reply.data) != reply.model.sha256:
@@ -908,17 +916,44 @@ class KnowledgeClient:
 
     async def list_models(self, name: str) -> tuple[list[ModelMeta], int | None]:
         """Versions of ``name`` and the pinned one (None: latest wins)."""
-        reply = await self._ask(f"{MODELS_PREFIX}/{name}", ModelList(name=name))
+        reply = await self._ask_model(ModelList(name=name))
         return reply.models, reply.pinned
 
     async def pin_model(self, name: str, version: int | None) -> int | None:
-        reply = await self._ask(f"{MODELS_PREFIX}/{name}", ModelPin(name=name, version=version))
+        reply = await self._ask_model(ModelPin(name=name, version=version))
         return reply.pinned
 
     async def rollback_model(self, name: str) -> int | None:
         """Pin the version before the one in force; returns the pinned version."""
-        reply = await self._ask(f"{MODELS_PREFIX}/{name}", ModelPin(name=name, rollback=True))
+        reply = await self._ask_model(ModelPin(name=name, rollback=True))
         return reply.pinned
+
+    async def _ask_model(
+        self, request: ModelPut | ModelGet | ModelList | ModelPin, *, timeout: float | None = None
+    ) -> KbReply:
+        """A model store request, on the model's own key (``_models/<name>``: the key the
+        access control grants), signed when the client has an identity."""
+        return await self._ask(
+            f"{MODELS_PREFIX}/{request.name}",
+            request,
+            timeout=timeout,
+            sign=str(type(request).__struct_config__.tag),
+        )
+
+    async def _model_signer(self) -> Signer | None:
+        """:attr:`signer`, else (looked up once, in a worker thread) the identity of
+        ``RAP_AS`` and ``RAP_CERTS``."""
+        if not self._signer_loaded:
+            from .identity import IdentityError, signer_from_env
+
+            try:
+                self.signer = await anyio.to_thread.run_sync(signer_from_env)
+            except IdentityError as exc:
+                raise KnowledgeError(
+                    f"cannot sign the model store request: {exc}", "denied"
+                ) from None
+            self._signer_loaded = True
+        return self.signer
 
     # -- plumbing --------------------------------------------------------------------------
 
@@ -942,11 +977,24 @@ class KnowledgeClient:
                 self._kb_keys[key] = full
         return full
 
-    async def _ask(self, key: str, request: KbRequest, *, timeout: float | None = None) -> KbReply:
+    async def _ask(
+        self, key: str, request: KbRequest, *, timeout: float | None = None, sign: str = ""
+    ) -> KbReply:
+        """``sign``: the verb to sign the request for (with :meth:`_model_signer`)."""
         selector = self._kb_key(key)
+        payload = _encode(request)
+        attachment = b""
+        signer = await self._model_signer() if sign else None
+        if signer is not None:
+            if len(payload) < 1 << 20:
+                attachment = signer.attachment(selector, sign, payload)
+            else:  # a model: hashed off the event loop
+                attachment = await anyio.to_thread.run_sync(
+                    signer.attachment, selector, sign, payload
+                )
         try:
             replies = await self.fabric.query(
-                selector, _encode(request), timeout=timeout or self.timeout
+                selector, payload, timeout=timeout or self.timeout, attachment=attachment
             )
         except QueryError as exc:
             raise KnowledgeError(

@@ -73,6 +73,9 @@ METRICS: Mapping[str, str] = {
     "published.",
     "rap_kb_reads_total": "Knowledge reads of a component's handlers.",
     "rap_kb_writes_total": "Knowledge writes and deletes of a component's handlers.",
+    "rap_ticks_total": "Calls of a component's periodic handlers (@node.every).",
+    "rap_ticks_skipped_total": "Ticks of a component's periodic handlers skipped because "
+    "a call overran its period.",
     "rap_inbox_depth": "Samples queued in a component's inboxes now (all routes).",
     "rap_handler_latency_seconds": "Seconds a component's handler calls took.",
     "rap_last_call_timestamp_seconds": "When a component's last handler call ended (UTC, "
@@ -199,6 +202,8 @@ class RuntimeCollector(Collector):
                 "records_lost",
                 "kb_reads",
                 "kb_writes",
+                "ticks",
+                "ticks_skipped",
             )
         }
         reasons = _counter("rap_rejections_total", (*_COMPONENT, "reason"))

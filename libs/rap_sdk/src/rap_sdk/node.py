@@ -11,6 +11,9 @@
     @analyse.on_trust("stage_order_ok")          # a trust checker's output stream
     async def on_verdict(ctx: Context, out: TrustOutput) -> None: ...
 
+    @analyse.every(0.1)                          # every 100 ms, on the event loop's clock
+    async def poll(ctx: Context) -> None: ...
+
 A handler takes the :class:`~rap_sdk.runtime.Context` and, optionally, the message; the
 message's annotation picks the decoder (built once, at declaration). Handlers are plain
 async functions that tests may call directly. A Node is only a declaration; it runs on a
@@ -20,6 +23,7 @@ fabric through :func:`rap_sdk.run_nodes` or :func:`rap_sdk.run`.
 from __future__ import annotations
 
 import inspect
+import math
 import types
 import typing
 from collections.abc import Awaitable, Callable
@@ -49,6 +53,7 @@ __all__ = [
     "EVENT_POLICY",
     "TRUST_POLICY",
     "Node",
+    "Periodic",
     "Route",
     "acceptor",
     "message_class",
@@ -109,6 +114,35 @@ class Route:
     def key(self, system: str) -> str:
         """The key this route handles in ``system``."""
         return _BUILDERS[self.kind](system, self.name)
+
+
+@dataclass(frozen=True, slots=True)
+class Periodic:
+    """A handler that the runtime calls every ``period`` seconds (:meth:`Node.every`)."""
+
+    name: str
+    """Its name within the node (default: the function's name)."""
+    period: float
+    """Seconds between two calls (> 0, finite)."""
+    fn: Callable[..., Awaitable[None]]
+    """``async def fn(ctx)``."""
+
+    handler_name: str = field(init=False)
+    """The handler's qualified name (in trace records and logs)."""
+    traced: bool = field(default=True, init=False)
+    """Calls are traced as stage records, each the root of a cycle of its own."""
+    takes_message: bool = field(default=False, init=False)
+    """Always False: a periodic handler is ``fn(ctx)``."""
+
+    def __post_init__(self) -> None:
+        name = getattr(self.fn, "__qualname__", None)
+        object.__setattr__(self, "handler_name", name if name is not None else repr(self.fn))
+
+    def trigger(self, node: str) -> str:
+        """What its calls name as their trigger key (``ctx.key``, ``trigger_key`` of
+        their trace records): ``every:<node>/<name>``, not a key of the fabric (nothing
+        arrives on it)."""
+        return f"every:{node}/{self.name}"
 
 
 def _signature(fn: Callable[..., Any], where: str) -> tuple[bool, Any]:
@@ -226,12 +260,15 @@ class Node:
         self.implementation = ""
         """``module:attr`` it was loaded from (set by the loader; in status replies)."""
         self.routes: list[Route] = []
+        self.periodic: list[Periodic] = []
+        """Its periodic handlers (:meth:`every`), in declaration order."""
         self._snapshot: Callable[[], Any] | None = None
         self._restore: tuple[Callable[[Any], Any], type[Any]] | None = None
 
     def __repr__(self) -> str:
         stage = self.stage.value if self.stage else "-"
-        return f"Node({self.name!r}, stage={stage}, routes={len(self.routes)})"
+        every = f", periodic={len(self.periodic)}" if self.periodic else ""
+        return f"Node({self.name!r}, stage={stage}, routes={len(self.routes)}{every})"
 
     def _route(
         self,
@@ -347,6 +384,56 @@ class Node:
         """Handle a trust checker's output ``stream`` (``rap/<system>/trust/<stream>``,
         messages :class:`rap_schemas.TrustOutput`). These calls are not traced."""
         return self._route("trust", stream, policy or TRUST_POLICY)
+
+    def every(self, period_s: float, *, name: str | None = None) -> Callable[[F], F]:
+        """Call ``async def fn(ctx)`` every ``period_s`` seconds while the node runs,
+        the first time one period after it starts. Calls take the node's turn like
+        any handler (never two at once, nor next to another handler of the node); a
+        call that overruns skips the ticks it missed (counted in
+        ``NodeStats.ticks_skipped``, logged at most once a second). A call that raises
+        is logged and counted (``NodeStats.failed``), and the timer goes on. The timer
+        stops with the node. Periods are on the event loop's monotonic clock (anyio's),
+        not on a simulator's time. ``name``: the handler's name within the node
+        (default: the function's name); each name once per node."""
+        where = f"node {self.name!r}, every({period_s!r})"
+        if (
+            isinstance(period_s, bool)
+            or not isinstance(period_s, int | float)
+            or not math.isfinite(period_s)
+            or period_s <= 0
+        ):
+            raise HandlerError(
+                f"{where}: the period must be a finite number of seconds > 0, got "
+                f"{period_s!r}; e.g. node.every(0.1) for 10 Hz"
+            )
+        period = float(period_s)
+
+        def register(fn: F) -> F:
+            takes, _ = _signature(fn, where)
+            if takes:
+                raise HandlerError(
+                    f"{where}: periodic handler {fn.__qualname__} must take (ctx) only: "
+                    "no message triggers it"
+                )
+            label = name if name is not None else getattr(fn, "__name__", "")
+            try:
+                keys.trace("x", label)  # one key chunk, as a node name
+            except ValueError as exc:
+                raise HandlerError(
+                    f"{where}: {label!r} is not a valid periodic handler name ({exc}); "
+                    "pass name= with letters, digits and _.-~+:@=%,"
+                ) from None
+            twin = next((p for p in self.periodic if p.name == label), None)
+            if twin is not None:
+                raise HandlerError(
+                    f"{where}: {fn.__qualname__} would be a second periodic handler named "
+                    f"{label!r}, next to {twin.handler_name}; give it another name= "
+                    "(each name once per node)"
+                )
+            self.periodic.append(Periodic(label, period, fn))
+            return fn
+
+        return register
 
     def on_snapshot(self, fn: Callable[[], Any]) -> Callable[[], Any]:
         """``fn()`` returns the node's state (any msgspec-encodable value)."""

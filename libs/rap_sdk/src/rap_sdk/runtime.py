@@ -9,12 +9,17 @@ reads and writes, what it sent) before what the call sent, carrying the ``cycle`
 (except for handlers of trust-checker outputs, which run outside the MAPLE-K cycle). A
 sample that cannot be accepted is counted, logged (rate limited) and published as a
 :class:`~rap_schemas.Rejection` on ``rap/<system>/log/<node>``; it never stops the node.
+
+A node's periodic handlers (``@node.every(period)``) each get a timer task that calls
+them on the event loop's monotonic clock (anyio's: the SDK's :class:`Clock` only stamps
+wall time), taking the node's turn like any handler; each call is the root of a cycle.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import os
 import signal
 import time
@@ -30,7 +35,7 @@ from typing import Any
 import anyio
 import msgspec
 from anyio.abc import TaskStatus
-from rap_schemas import Access, Message, Rejection, StageTrace, keys
+from rap_schemas import Access, Empty, Message, Rejection, StageTrace, keys
 
 from .envelope import (
     Clock,
@@ -40,6 +45,7 @@ from .envelope import (
     SenderStats,
     SystemClock,
     TypedEnvelope,
+    new_uid,
 )
 from .errors import BackpressureTimeout, ConfigError, LifecycleError, RapError, RejectedSample
 from .fabric import Fabric, Outgoing, Sample, Subscription
@@ -47,7 +53,7 @@ from .gc import IdleCollector
 from .knowledge import _MISSING, KnowledgeClient
 from .latency import BUCKETS as LATENCY_BUCKETS
 from .latency import RECENT, Latency
-from .node import Node, Route
+from .node import Node, Periodic, Route
 from .rejections import Rejections, Throttle
 
 __all__ = [
@@ -140,6 +146,12 @@ class NodeStats:
     """Knowledge reads of its handlers."""
     kb_writes: int = 0
     """Knowledge writes and deletes of its handlers."""
+    ticks: int = 0
+    """Calls of its periodic handlers (``@node.every``; also in ``handled`` or
+    ``failed``)."""
+    ticks_skipped: int = 0
+    """Ticks of its periodic handlers that were not run because the call before (or
+    the wait for the node's turn) overran them (logged, rate-limited)."""
 
 
 class Context:
@@ -187,7 +199,7 @@ class Context:
         self._out: list[tuple[str, Outgoing]] | None = None
         """What the handler sent and has not left yet (it leaves when the handler
         returns, or at ``flush()``)."""
-        self._route: Route | None = None
+        self._route: Route | Periodic | None = None
         self._split = False
         """A ``start`` record went out (the handler waited, or flushed): the call ends
         with an ``end`` record."""
@@ -534,7 +546,7 @@ class NodeRuntime:
 
     async def _trace(
         self,
-        route: Route,
+        route: Route | Periodic,
         phase: str,
         ctx: Context,
         ts: int,
@@ -690,7 +702,7 @@ class NodeRuntime:
                     route = swapped[1]
             await self._call(route, ctx)
 
-    async def _call(self, route: Route, ctx: Context, direct: bool = False) -> None:
+    async def _call(self, route: Route | Periodic, ctx: Context, direct: bool = False) -> None:
         """Run ``route``'s handler on ``ctx``, trace it, send what it sent. ``direct``:
         :meth:`direct` took the node's turn for this call; it is given back at the end."""
         try:
@@ -774,7 +786,7 @@ class NodeRuntime:
             if self.after_call is not None:
                 self.after_call()
 
-    def _failed(self, route: Route, ctx: Context) -> None:
+    def _failed(self, route: Route | Periodic, ctx: Context) -> None:
         """Count a handler's failure and log its traceback (at once, then at most one a
         second per handler with a count: a poisoned input can make every call fail)."""
         self.stats.failed += 1
@@ -841,6 +853,8 @@ class NodeRuntime:
                 # their order, so a peer that sees the token can already reach the node
                 token = self._token = self.fabric.declare_token(alive_key)
                 self.started_at = time.time_ns()
+                for periodic in self.node.periodic:
+                    tg.start_soon(self._every, periodic.name)
                 task_status.started()
                 await self._stopping.wait()
                 for sub in self._subs:  # stop() may have come before they existed
@@ -879,6 +893,72 @@ class NodeRuntime:
                 await handle(route, sample)
             finally:
                 inflight.discard(route)
+
+    async def _every(self, name: str) -> None:
+        """The timer of periodic handler ``name``: a call one period after the start,
+        then one on every tick of that grid, until the node stops. A call waits for the
+        node's turn; the ticks whose time passed before the call (with that wait) ended
+        are skipped and counted. The handler is looked up at each tick (a swap may have
+        replaced it, and its period)."""
+        stopping = self._stopping
+        if stopping is None:
+            return
+        now = anyio.current_time
+        found = self._periodic(name)
+        if found is None:
+            return
+        due = now() + found.period
+        seq = 0
+        while True:
+            with anyio.CancelScope(deadline=due):
+                await stopping.wait()
+            if stopping.is_set():
+                return
+            periodic = self._periodic(name)
+            if periodic is None:
+                return
+            async with self._lock:
+                if self._stop_requested:
+                    return
+                self.stats.ticks += 1
+                await self._call(periodic, self._tick_context(periodic, seq))
+            seq += 1
+            due += periodic.period
+            late = now() - due
+            if late > 0:
+                missed = math.ceil(late / periodic.period)
+                due += missed * periodic.period
+                self._skipped(periodic, missed)
+
+    def _periodic(self, name: str) -> Periodic | None:
+        return next((p for p in self.node.periodic if p.name == name), None)
+
+    def _tick_context(self, periodic: Periodic, seq: int) -> Context:
+        """A tick's context: a synthetic trigger (uid, time, an empty body) that no
+        fabric carried; what the handler sends starts a cycle of its own."""
+        ts = self.clock.time_ns()
+        body = Empty()
+        env: TypedEnvelope[Any] = TypedEnvelope(
+            uid=new_uid.at(ts), ts=ts, source=self.node.name, seq=seq, type=Empty.TYPE, body=body
+        )
+        return Context(self, periodic.trigger(self.node.name), env, body)
+
+    def _skipped(self, periodic: Periodic, n: int) -> None:
+        """Ticks a periodic handler missed: counted, and said (at most once a second)."""
+        self.stats.ticks_skipped += n
+        count = self._drop_log.hit(f"every {periodic.name}")
+        if count:
+            log.warning(
+                "node %s: periodic handler %s (every %g s) overran its period %d time(s) "
+                "since the last report (%d tick(s) skipped in all): the call, or its wait "
+                "for the node's turn, took longer than the period; make it faster or give "
+                "it a longer period",
+                self.node.name,
+                periodic.handler_name,
+                periodic.period,
+                count,
+                self.stats.ticks_skipped,
+            )
 
     def _dropped(self, route: Route, n: int) -> None:
         """Samples an inbox dropped: counted, and said (at most once a second a route)."""
@@ -966,6 +1046,13 @@ class NodeRuntime:
             f"it handles {k}/{n}, which the running one does not"
             for k, n in theirs
             if (k, n) not in ours
+        ]
+        ticking = {p.name for p in self.node.periodic}
+        new_ticking = {p.name for p in new.periodic}
+        problems += [f"it has no periodic handler {n!r}" for n in sorted(ticking - new_ticking)]
+        problems += [
+            f"it has a periodic handler {n!r}, which the running one does not"
+            for n in sorted(new_ticking - ticking)
         ]
         for key, r in ours.items():
             t = theirs.get(key)

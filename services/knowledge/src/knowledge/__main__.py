@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import anyio
+import msgspec
 import typer
 from rap_schemas.yamlconf import YamlError, load_yaml, read_text_file
 from rap_sdk import FabricError, LifecycleError, ZenohConfig, ZenohFabric
@@ -84,6 +85,15 @@ def main(
     listen: Annotated[list[str] | None, typer.Option(help="Zenoh listen endpoint.")] = None,
     connect: Annotated[list[str] | None, typer.Option(help="Zenoh endpoint to connect.")] = None,
     history_max: Annotated[int, typer.Option(help="Versions kept per key (>= 1).")] = 1000,
+    model_grants: Annotated[
+        str | None,
+        typer.Option(
+            help="JSON: identity -> model name -> read or write, what the model store "
+            "takes from whom when the service has identities (RAP_CERTS); operators may "
+            "do everything. rap up derives it from the model's models: fields.",
+            show_default=False,
+        ),
+    ] = None,
     config_file: Annotated[
         Path | None,
         typer.Option("--config", help="YAML KnowledgeConfig; when given, it sets everything."),
@@ -119,6 +129,7 @@ def main(
             kafka_url=kafka_url,
             kafka_topic=kafka_topic,
             history=[HistoryRule(max_count=history_max)],
+            model_grants=_grants(model_grants),
         )
     try:
         if config.backend == "memcached":
@@ -155,6 +166,19 @@ def main(
         if isinstance(inner, LifecycleError):  # a service of this system is running
             raise fail(f"{inner}", 1) from None
         raise
+
+
+def _grants(text: str | None) -> dict[str, dict[str, Literal["read", "write"]]]:
+    """``--model-grants``; a usage error says what is wrong."""
+    if text is None:
+        return {}
+    try:
+        return msgspec.json.decode(text, type=dict[str, dict[str, Literal["read", "write"]]])
+    except (msgspec.DecodeError, msgspec.ValidationError) as exc:
+        raise fail(
+            f"--model-grants: {exc} - give JSON such as "
+            '{"edge.runner": {"occlusion": "write"}} (identity -> model -> read or write)'
+        ) from None
 
 
 def load_config(path: Path) -> KnowledgeConfig:

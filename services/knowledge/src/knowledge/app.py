@@ -8,6 +8,7 @@ from contextlib import asynccontextmanager
 
 import anyio
 from rap_sdk import Fabric
+from rap_sdk.identity import Verifier
 from rap_sdk.knowledge import SERVICE_NODE
 from rap_sdk.runtime import refuse_running
 
@@ -62,18 +63,23 @@ async def open_store(config: KnowledgeConfig) -> AsyncIterator[Store]:
 
 @asynccontextmanager
 async def open_service(
-    config: KnowledgeConfig, *, fabric: Fabric, store: Store | None = None
+    config: KnowledgeConfig,
+    *,
+    fabric: Fabric,
+    store: Store | None = None,
+    verifier: Verifier | None = None,
 ) -> AsyncIterator[KnowledgeService]:
     """Run the service on ``fabric`` for the duration of the block (ready on entry). A
     store that cannot be opened raises its :class:`~knowledge.errors.KnowledgeError`
-    before anything runs."""
+    before anything runs. ``verifier``: who may use the model store is checked with it
+    (default: the CA of ``RAP_CERTS`` when it is set)."""
     # before anything runs, so that the error comes plain (not in a task group's group)
     await refuse_running(fabric=fabric, system=config.system, names=[SERVICE_NODE])
     async with contextlib.AsyncExitStack() as stack:
         if store is None:
             store = await stack.enter_async_context(open_store(config))
         async with anyio.create_task_group() as tg:
-            service = KnowledgeService(config, fabric=fabric, store=store)
+            service = KnowledgeService(config, fabric=fabric, store=store, verifier=verifier)
             await tg.start(service.run)
             try:
                 yield service

@@ -34,4 +34,10 @@ class KnowledgeConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     """First matching rule wins."""
     max_value_bytes: int = 1 << 20
     max_model_bytes: int = 256 << 20
+    model_grants: dict[str, dict[str, Literal["read", "write"]]] = {}
+    """Identity -> model name -> ``read`` (get, list) or ``write`` (also put, pin, roll
+    back): what the system model grants each process (``rap up`` derives it from the
+    components' ``models:``). With identities (``RAP_CERTS``) the model store takes a
+    request only signed, from an operator or from an identity granted that model;
+    without, from anyone."""
     handler_timeout: float = 30.0

@@ -5,6 +5,11 @@
 - Answers queries on the same keys (``KbRequest`` -> ``KbReply``): durable writes and
   compare-and-set (stored, then republished on the write stream for replicas), get,
   history, key listing, and the model store under ``_models/<name>``.
+- A model store request is taken only on its model's own key (what the routers' access
+  control grants), and, when the service has identities (``RAP_CERTS``), only signed by
+  an operator or by an identity ``model_grants`` allows (read: get and list; write: also
+  put, pin and roll back). Each is audited (``rap.audit``, as the admin verbs are): who,
+  what, and what came of it; refusals with the identity that asked.
 - Bad input (unknown operation, oversized value, wrong type, malformed key) gets an
   error reply with the reason; the service carries on.
 """
@@ -40,8 +45,10 @@ from rap_schemas import (
 )
 from rap_schemas.limits import DecodeRejected, SafeDecoder
 from rap_sdk import Fabric, InboxPolicy, Opener, QueryRequest, RapError, Reply, Sample, Sealer
+from rap_sdk.admin import Gate, audit
 from rap_sdk.envelope import typed_decoder
 from rap_sdk.errors import LifecycleError, RejectedSample
+from rap_sdk.identity import OPERATOR, AuthError, Caller, Verifier
 from rap_sdk.inbox import Overflow
 from rap_sdk.knowledge import SERVICE_NODE, join_colocated
 from rap_sdk.rejections import Rejections, Throttle
@@ -68,6 +75,16 @@ NODE = SERVICE_NODE
 _encode = msgspec.msgpack.Encoder().encode
 _STREAM = typed_decoder(KbRecord)
 PUT_RETRIES = 8
+ModelRequest = ModelPut | ModelGet | ModelList | ModelPin
+_MODEL_REQUESTS = (ModelPut, ModelGet, ModelList, ModelPin)
+_MODEL_WHAT = {
+    "model-put": "put a version of",
+    "model-get": "get",
+    "model-list": "list",
+    "model-pin": "pin",
+    "model-rollback": "roll back",
+}
+"""A model store verb (an audit record's), as a refusal says it."""
 
 
 class ServiceStats(msgspec.Struct):
@@ -79,7 +96,16 @@ class ServiceStats(msgspec.Struct):
 
 
 class KnowledgeService:
-    def __init__(self, config: KnowledgeConfig, *, fabric: Fabric, store: Store) -> None:
+    def __init__(
+        self,
+        config: KnowledgeConfig,
+        *,
+        fabric: Fabric,
+        store: Store,
+        verifier: Verifier | None = None,
+    ) -> None:
+        """``verifier``: who may use the model store is checked with it (default: the CA
+        of ``RAP_CERTS`` when it is set; else everyone may)."""
         self.config = config
         self.fabric = fabric
         self.store = store
@@ -95,6 +121,9 @@ class KnowledgeService:
         self._prefix = keys.kb(config.system, "x")[:-1]
         self._log_key = keys.log(config.system, NODE)
         self._model_locks: dict[str, anyio.Lock] = {}
+        self._gate = Gate(verifier)
+        """Who may use the model store (the admin verbs' gate: its verifier, its
+        throttle of audited refusals)."""
         self._taking = 0
         """Records being stored now (a direct take waits for none: it goes to the inbox)."""
 
@@ -200,9 +229,11 @@ class KnowledgeService:
     async def _answer(self, query: QueryRequest) -> Iterable[Reply]:
         self.stats.queries += 1
         try:  # the fabric bounds the whole query with its handler deadline
-            reply = await self._dispatch(
-                self._request(query.payload), query.key, query.arrived or time.monotonic()
-            )
+            req = self._request(query.payload)
+            if isinstance(req, _MODEL_REQUESTS):
+                reply = await self._model_request(req, query)
+            else:
+                reply = await self._dispatch(req, query.key, query.arrived or time.monotonic())
         except DecodeRejected as exc:
             await self._rejected(self.rejections.reject(query.key, exc.reason))
             reply = self._error(BadRequest(exc.reason), quiet=True)
@@ -267,7 +298,7 @@ class KnowledgeService:
             return KbReply(records=recs)
         if isinstance(req, KbList):
             return KbReply(keys=await store.keys(check_pattern(req.pattern)))
-        return await self._models(req)
+        raise BadRequest(f"unknown knowledge operation {type(req).__name__}")
 
     async def _put(self, rec: KbRecord, expect: int | None, deadline: float | None) -> KbReply:
         """Store a durable write. The service orders durable writes: one that arrives at
@@ -316,6 +347,115 @@ class KnowledgeService:
             await self.fabric.publish(key, payload, local=False)
 
     # -- model store -----------------------------------------------------------------------
+
+    async def _model_request(self, req: ModelRequest, query: QueryRequest) -> KbReply:
+        """A model store request: on its model's key, from whom may make it (refused
+        with ``code="denied"``), then done; audited either way."""
+        name = req.name
+        try:
+            expected = self._prefix + f"{MODELS_PREFIX}/{name}"
+            keys.kb(self.config.system, f"{MODELS_PREFIX}/{name}")
+        except keys.KeyError_ as exc:
+            raise BadRequest(f"invalid model name: {exc}") from None
+        if query.key != expected:
+            raise BadRequest(
+                f"a request for model {name!r} was sent to {query.key!r} - send it to "
+                f"{expected} (KnowledgeClient does)"
+            )
+        verb = _verb(req)
+        write = isinstance(req, ModelPut | ModelPin)
+        asked = _asked(req)
+        checked = self._gate.checks
+        try:
+            caller = await self._authorize(req, verb, write, query)
+        except AuthError as exc:
+            audit(
+                verb=verb,
+                component=NODE,
+                result="refused",
+                caller=exc.caller,
+                checked=True,
+                key=query.key,
+                request=asked,
+                reason=exc.reason,
+                read=not write,
+                kind=exc.kind,
+                throttle=self._gate.refusals,
+            )
+            self.stats.query_errors += 1
+            return KbReply(ok=False, code="denied", error=exc.reason)
+        try:
+            reply = await self._models(req)
+        except (ServiceError, RapError) as exc:
+            audit(
+                verb=verb,
+                component=NODE,
+                result="error",
+                caller=caller,
+                checked=checked,
+                key=query.key,
+                request=asked,
+                reason=str(exc),
+                read=not write,
+            )
+            raise
+        audit(
+            verb=verb,
+            component=NODE,
+            result="ok",
+            caller=caller,
+            checked=checked,
+            key=query.key,
+            request=asked,
+            reason=_done(req, reply),
+            read=not write,
+        )
+        return reply
+
+    async def _authorize(
+        self, req: ModelRequest, verb: str, write: bool, query: QueryRequest
+    ) -> Caller | None:
+        """Who signed ``req`` when the service checks identities (None: it does not);
+        :class:`~rap_sdk.identity.AuthError` unless an operator or an identity
+        ``model_grants`` allows it."""
+        gate = self._gate
+        await gate.load()
+        if gate.problem:
+            raise AuthError(gate.problem, kind="identities not loadable")
+        verifier = gate.verifier
+        if verifier is None:
+            return None
+        signed = partial(
+            verifier.verify,
+            query.key,
+            _tag(req),
+            query.payload,
+            query.attachment,
+            scope=NODE,
+        )
+        caller = (
+            signed() if len(query.payload) < 1 << 20 else await anyio.to_thread.run_sync(signed)
+        )
+        if caller.role == OPERATOR:
+            return caller
+        name = req.name
+        granted = self.config.model_grants.get(caller.name, {}).get(name)
+        if granted == "write" or (granted == "read" and not write):
+            return caller
+        need = "write" if write else "read"
+        has = (
+            f"grants it only read access (models: {{{name}: read}})"
+            if granted
+            else "grants it no access to it"
+        )
+        raise AuthError(
+            f"{caller.name!r} may not {_MODEL_WHAT[verb]} model {name!r}: the system model "
+            f"{has} - give its component 'models: {{{name}: {need}}}' in the model and "
+            "restart it (rap up), or ask as one of the model's fabric.operators (rap models "
+            "... --as NAME)",
+            kind=f"model {need} not granted",
+            caller=caller,
+        )
 
     async def _models(self, req: Any) -> KbReply:
         store = self.store
@@ -389,6 +529,46 @@ class KnowledgeService:
         if not versions:
             raise NotFound(f"no model named {name!r} (under {MODELS_PREFIX}/)")
         return versions[-1].version
+
+
+def _tag(req: ModelRequest) -> str:
+    """A model store request's tag (``model-put``, ...): the verb it is signed for."""
+    tag = type(req).__struct_config__.tag
+    assert isinstance(tag, str)
+    return tag
+
+
+def _verb(req: ModelRequest) -> str:
+    """The audit record's verb of a model store request."""
+    if isinstance(req, ModelPin) and req.rollback:
+        return "model-rollback"
+    return _tag(req)
+
+
+def _asked(req: ModelRequest) -> str:
+    """A model store request as its audit record keeps it."""
+    if isinstance(req, ModelPut):
+        return f"{req.name}: {len(req.data)} bytes, sha256 {req.sha256[:12]}"
+    if isinstance(req, ModelPin) and not req.rollback:
+        return f"{req.name} version {req.version}" if req.version is not None else req.name
+    if isinstance(req, ModelGet) and req.version is not None:
+        return f"{req.name} version {req.version}"
+    return req.name
+
+
+def _done(req: ModelRequest, reply: KbReply) -> str:
+    """What a model store request did, as its audit record says it."""
+    if isinstance(req, ModelPut) and reply.model is not None:
+        return f"stored version {reply.model.version}"
+    if isinstance(req, ModelPin):
+        if req.rollback:
+            return f"rolled back to version {reply.pinned}"
+        if reply.pinned is None:
+            return "unpinned: the latest version is in force"
+        return f"pinned version {reply.pinned}"
+    if isinstance(req, ModelGet) and reply.model is not None:
+        return f"version {reply.model.version}"
+    return f"{len(reply.models)} version(s)"
 
 
 class _Intake:

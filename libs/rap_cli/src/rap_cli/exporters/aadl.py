@@ -21,6 +21,8 @@ Five files, one package each (``S`` is the system's identifier):
   trust and the fabric are.
 
 What AADL cannot carry is said with a ``RAP::`` property. Docs lose their line breaks.
+The root says ``RAP::Infer => false``: the importer infers nothing (no stage from a
+name, no component dispatch from its threads) where the model has none.
 """
 
 from __future__ import annotations
@@ -54,6 +56,7 @@ property set RAP is
   Mode_Transitions: aadlstring applies to (process);
   Reads: list of aadlstring applies to (process);
   Writes: list of aadlstring applies to (process);
+  Models: list of aadlstring applies to (process);
   Dispatch: enumeration (periodic, sporadic) applies to (process);
   Rate_Hz: aadlreal applies to (process, thread);
   Topic: aadlstring applies to (port);
@@ -76,6 +79,7 @@ property set RAP is
   Trust_Specs: list of aadlstring applies to (system);
   Fabric_Mode: enumeration (peer, client, router) applies to (system);
   Fabric_Routers: list of aadlstring applies to (system);
+  Infer: aadlboolean applies to (system);
 end RAP;
 """
 
@@ -122,6 +126,9 @@ def _process(name: str, pid: str, comp: ComponentSpec, types: Types) -> Iterator
         props.append(f"RAP::Reads => {strings(comp.reads)}")
     if comp.writes:
         props.append(f"RAP::Writes => {strings(comp.writes)}")
+    if comp.models:  # "name:read", "name:write"
+        models = [f"{name}:{access}" for name, access in comp.models.items()]
+        props.append(f"RAP::Models => {strings(models)}")
     if any(not tr.triggers for tr in comp.mode_transitions):
         # AADL cannot write a transition without a trigger: all of them, in order, as JSON
         moves = [[tr.from_, tr.to, tr.triggers] for tr in comp.mode_transitions]
@@ -305,6 +312,8 @@ def export_aadl(plan: DeploymentPlan) -> _Exported:
     if plan.trust.specs:
         root_props.append(f"RAP::Trust_Specs => {strings(plan.trust.specs)}")
     root_props.append(f"RAP::Fabric_Mode => {plan.fabric.mode}")
+    # the export says everything: nothing is to be inferred from names or threads
+    root_props.append("RAP::Infer => false")
     if plan.fabric.routers:
         root_props.append(f"RAP::Fabric_Routers => {strings(plan.fabric.routers)}")
     root = [

@@ -132,10 +132,13 @@ def deploy_files(
     package: str,
     model_file: str = "model.yaml",
     installed: Sequence[str] = (),
+    package_dir: str | None = None,
 ) -> dict[str, str]:
     """Relative POSIX path -> text of every deployment file of ``doc``'s model, whose
     file is ``model_file`` in the build context and whose Python package is ``package``
-    (a folder next to it). ``installed``: distributions that provide the model's Nodes
+    (the folder ``package_dir`` of the context: by default a folder ``package`` next to
+    the model; ``src/<package>`` in a src layout). ``installed``: distributions that
+    provide the model's Nodes
     instead (``rap generate --deploy-only``): they are pinned with RAP's own and come
     from deploy/wheels, and no package folder is copied. Raises :class:`DeployError`
     (e.g. a distribution RAP needs is not installed where the generator runs, so it
@@ -154,11 +157,20 @@ def deploy_files(
     files["deploy/requirements.lock"] = lock.render_index(package)
     files["deploy/requirements-rap.lock"] = lock.render_local()
     files["deploy/Dockerfile"] = dockerfile(
-        plan, package=package, model_file=model_file, copy_package=not installed
+        plan,
+        package=package,
+        model_file=model_file,
+        copy_package=not installed,
+        package_dir=package_dir,
     )
     files["deploy/wheels/README.md"] = _wheels_readme(lock)
     files["deploy/README.md"] = readme(
-        plan, package=package, image=image, lock=lock, copy_package=not installed
+        plan,
+        package=package,
+        image=image,
+        lock=lock,
+        copy_package=not installed,
+        package_dir=package_dir,
     )
     return files
 
@@ -769,13 +781,19 @@ def _data_dirs(plan: DeploymentPlan) -> list[str]:
 
 
 def _copies(
-    plan: DeploymentPlan, *, package: str, model_file: str, copy_package: bool = True
+    plan: DeploymentPlan,
+    *,
+    package: str,
+    model_file: str,
+    copy_package: bool = True,
+    package_dir: str | None = None,
 ) -> list[str]:
-    """COPY lines for the model, the package, the trust specs and the node folders."""
+    """COPY lines for the model, the package (from ``package_dir``, to ``package/`` in
+    the image: on its ``PYTHONPATH``), the trust specs and the node folders."""
     model_dir = _model_dir(model_file)
     lines = [f"COPY {model_file} {model_file}"]
     if copy_package:
-        lines.append(f"COPY {package}/ {package}/")
+        lines.append(f"COPY {package_dir or package}/ {package}/")
     for spec in plan.trust.specs:
         path = posixpath.normpath(posixpath.join(model_dir, spec))
         if spec.startswith("/") or path.startswith(".."):
@@ -792,10 +810,17 @@ def dockerfile(
     package: str,
     model_file: str = "model.yaml",
     copy_package: bool = True,
+    package_dir: str | None = None,
 ) -> str:
     """The one image of every compute node: RAP, the package, the node folders."""
     copies = "\n".join(
-        _copies(plan, package=package, model_file=model_file, copy_package=copy_package)
+        _copies(
+            plan,
+            package=package,
+            model_file=model_file,
+            copy_package=copy_package,
+            package_dir=package_dir,
+        )
     )
     dirs = " ".join(_data_dirs(plan))
     return f"""\
@@ -872,11 +897,18 @@ here only. From a checkout of RAP: `make wheels WHEELS_DIR=<this folder>`. Expec
 
 
 def readme(
-    plan: DeploymentPlan, *, package: str, image: str, lock: Lock, copy_package: bool = True
+    plan: DeploymentPlan,
+    *,
+    package: str,
+    image: str,
+    lock: Lock,
+    copy_package: bool = True,
+    package_dir: str | None = None,
 ) -> str:
     """``deploy/README.md``: how to fill the wheels, build the image and run each node."""
     nodes = list(plan.compute_nodes)
-    code = f"the package `{package}/`" if copy_package else "no package: the Nodes are wheels"
+    folder = package_dir or package
+    code = f"the package `{folder}/`" if copy_package else "no package: the Nodes are wheels"
     first = nodes[0]
     run = "\n".join(
         f"    docker compose -f deploy/{n}/compose.yaml up -d   # on {n}" for n in nodes

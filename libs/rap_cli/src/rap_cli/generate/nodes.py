@@ -14,10 +14,14 @@ from rap_schemas import DeploymentPlan
 
 from .messages import MessageNames
 from .names import identifier
+from .pyfmt import Call, docstring, import_from, lines, q
 from .regions import begin, end
 from .wiring import ComponentWiring, PortWiring
 
-__all__ = ["module_name", "node_module"]
+__all__ = ["PLACEHOLDER_CHECK", "module_name", "node_module", "periodic_threads"]
+
+PLACEHOLDER_CHECK = "# placeholder: approves every plan within the model's constraints;"
+"""The first line of a generated check() region: while it is there, rap generate warns."""
 
 
 def module_name(component: str, taken: dict[str, str]) -> str:
@@ -36,6 +40,49 @@ def _docline(text: str) -> str:
     return " ".join(text.split()).replace('"""', "'''").replace("\\", "/")
 
 
+def periodic_threads(cw: ComponentWiring, taken: set[str]) -> list[tuple[str, str, float]]:
+    """(thread, handler function, period in seconds) of each thread of ``cw`` that the
+    model dispatches periodically at a known rate; each function ``on_<thread>``, made
+    unique against ``taken`` (the input handlers' names) and the others. A sporadic
+    thread, or one without a rate, gets no handler (its inputs' handlers serve it)."""
+    out: list[tuple[str, str, float]] = []
+    used = set(taken)
+    for thread, spec in cw.spec.threads.items():
+        d = spec.dispatch
+        if d is None or d.kind != "periodic" or not d.rate_hz:
+            continue
+        base = fn = f"on_{identifier(thread)}"
+        n = 1
+        while fn in used:
+            n += 1
+            fn = f"{base}_{n}"
+        used.add(fn)
+        out.append((thread, fn, 1.0 / d.rate_hz))
+    return out
+
+
+def _keys(name: str, keys: list[str]) -> list[str]:
+    """``NAME: tuple[str, ...] = ("a", "b")`` (wrapped when long)."""
+    head = f"{name}: tuple[str, ...] = "
+    if len(keys) <= 1:
+        return [f"{head}({q(keys[0])},)" if keys else f"{head}()"]
+    return lines(Call(head, tuple(q(k) for k in keys)))
+
+
+def _def(head: str, params: str, tail: str) -> list[str]:
+    """``head(params)tail``: a ``def`` line, its parameters one a line when too long."""
+    return lines(Call(head, tuple(params.split(", "))), "", tail)
+
+
+def _max_age(cw: ComponentWiring) -> float:
+    """The default ``plan_max_age`` of an execute stage's Config: the model's
+    ``config: {plan_max_age: ..}`` when it gives a number, else 1 s."""
+    value = cw.spec.config.get("plan_max_age")
+    if isinstance(value, int | float) and not isinstance(value, bool) and value > 0:
+        return float(value)
+    return 1.0
+
+
 def _region(rid: str, body: list[str], indent: str) -> list[str]:
     return [begin(rid, indent), *(f"{indent}{b}" if b else "" for b in body), end(rid, indent)]
 
@@ -46,13 +93,13 @@ def _send_body(cw: ComponentWiring, p: PortWiring, names: MessageNames) -> list[
     lines = []
     if p.channel.knowledge:
         arg = "msg" if cls else "True"
-        lines.append(f"await ctx.kb.write({p.channel.knowledge!r}, {arg})")
+        lines.append(f"await ctx.kb.write({q(p.channel.knowledge)}, {arg})")
     if p.role == "proposal":
         lines.append("await propose(ctx, msg)" if cls else "await propose(ctx, Empty())")
     elif p.channel.family == "data":
-        lines.append(f"await ctx.publish({p.channel.key!r}, {'msg' if cls else 'Empty()'})")
+        lines.append(f"await ctx.publish({q(p.channel.key)}, {'msg' if cls else 'Empty()'})")
     else:
-        lines.append(f"await ctx.emit({p.channel.key!r}{', msg' if cls else ''})")
+        lines.append(f"await ctx.emit({q(p.channel.key)}{', msg' if cls else ''})")
     return lines
 
 
@@ -60,7 +107,7 @@ def _forward(cw: ComponentWiring, names: MessageNames, incoming: str | None) -> 
     """Default behaviour of a handler: write the keys, send every output."""
     value = "msg" if incoming else "True"
     lines = [
-        f"await ctx.kb.write({key!r}, {value})"
+        f"await ctx.kb.write({q(key)}, {value})"
         for key in cw.spec.writes
         if not any(o.channel.knowledge == key for o in cw.outputs)
     ]
@@ -134,8 +181,7 @@ def node_module(
         return f"{kind} {p.channel.key!r} ({t}{extra}){how}"
 
     doc = [
-        f'"""Component {cw.name!r} ({stage or cw.spec.role or "no stage"}) of system '
-        f"{plan.system!r}.",
+        f"Component {cw.name!r} ({stage or cw.spec.role or 'no stage'}) of system {plan.system!r}.",
         "",
     ]
     if cw.spec.doc:
@@ -153,15 +199,16 @@ def node_module(
     doc += [
         f"Knowledge: reads {', '.join(cw.reads) or 'nothing'}; writes "
         f"{', '.join(cw.writes) or 'nothing'}.",
-        '"""',
     ]
-    out = [*doc, "", "from __future__ import annotations", "", "import logging", ""]
-    out += ["import msgspec", f"from rap_schemas import {', '.join(sorted(schema_imports))}"]
+    out = [*docstring("\n".join(doc), ""), "", "from __future__ import annotations", ""]
+    out += ["import logging", "", "import msgspec", *import_from("rap_schemas", schema_imports)]
     out.append("from rap_sdk import Context, Node")
     if gate_imports:
-        out.append(f"from rap_sdk.gate import {', '.join(sorted(gate_imports))}")
+        out += import_from("rap_sdk.gate", gate_imports)
     out += ["", "from .. import messages", "from ..samples import sample", ""]
-    out += _region("imports", [], "")
+    # the user's imports sort apart from the generated ones, and end with a blank line
+    out.append("# isort: split")
+    out += _region("imports", [""], "")
     out += [""]
     out += _region(
         "behaviour",
@@ -180,9 +227,9 @@ def node_module(
         "",
         "log = logging.getLogger(__name__)",
         "",
-        f"READS: tuple[str, ...] = {tuple(cw.reads)!r}",
+        *_keys("READS", cw.reads),
         '"""Knowledge keys this component reads (the model\'s ``reads``)."""',
-        f"WRITES: tuple[str, ...] = {tuple(cw.writes)!r}",
+        *_keys("WRITES", cw.writes),
         '"""Knowledge keys this component writes (``writes``, and the knowledge ports it',
         'feeds)."""',
         "",
@@ -193,8 +240,10 @@ def node_module(
     ]
     if any(p.role == "approved" for p in cw.inputs):
         out += [
-            "    plan_max_age: float = 1.0",
-            '    """Seconds an approved plan stays executable after its creation."""',
+            f"    plan_max_age: float = {_max_age(cw)!r}",
+            '    """Seconds an approved plan stays executable after its creation (the gate',
+            "    takes the value the node is configured with: the model's ``config:``, or",
+            '    ``rap admin config``)."""',
             "",
         ]
     out += _region("config", ["pass"], "    ")
@@ -211,13 +260,16 @@ def node_module(
         "",
         "",
         "state = State()",
-        f"node = Node({cw.name!r}, stage={stage!r}, config=Config())",
+        f"node = Node({q(cw.name)}, stage={q(stage) if stage else None}, config=Config())",
     ]
     if any(p.role == "approved" for p in cw.inputs):
-        out += [
-            f"gate = ApprovalGate(legitimators={sorted(cw.legitimators)!r}, "
-            "max_age=Config().plan_max_age)",
-        ]
+        legitimators = f"[{', '.join(q(n) for n in sorted(cw.legitimators))}]"
+        args = (
+            f"legitimators={legitimators}",
+            "max_age=Config().plan_max_age",
+            'max_age_config="plan_max_age"',
+        )
+        out += lines(Call("gate = ApprovalGate", args))
     out += [
         "",
         "",
@@ -249,8 +301,8 @@ def node_module(
             "",
             "",
             f"async def read_{identifier(key)}(ctx: Context) -> object:",
-            f'    """Knowledge key {key!r} (None while nobody wrote it)."""',
-            f"    return await ctx.kb.read({key!r}, default=None)",
+            *docstring(f"Knowledge key {key!r} (None while nobody wrote it).", "    "),
+            f"    return await ctx.kb.read({q(key)}, default=None)",
         ]
     for o in cw.outputs:
         cls = _cls(o, names)
@@ -258,11 +310,12 @@ def node_module(
         out += [
             "",
             "",
-            f"async def send_{identifier(o.port)}({sig}) -> None:",
-            f'    """Output {o.port}: {what(o)}."""',
+            *_def(f"async def send_{identifier(o.port)}", sig, " -> None:"),
+            *docstring(f"Output {o.port}: {what(o)}.", "    "),
             *(f"    {line}" for line in _send_body(cw, o, names)),
         ]
     seen: set[tuple[str, str]] = set()
+    taken: set[str] = set()
     for p in cw.handlers:
         chan = (p.channel.family, p.channel.key)
         if chan in seen:
@@ -271,16 +324,31 @@ def node_module(
         cls = _cls(p, names)
         deco = "on_data" if p.channel.family == "data" else "on_event"
         fn = f"on_{identifier(p.port)}"
+        taken.add(fn)
         sig = f"ctx: Context, msg: {cls}" if cls else "ctx: Context"
         out += [
             "",
             "",
-            f"@node.{deco}({p.channel.key!r})",
-            f"async def {fn}({sig}) -> None:",
-            f'    """Input {p.port}: {what(p)}."""',
+            *lines(Call(f"@node.{deco}", (q(p.channel.key),))),
+            *_def(f"async def {fn}", sig, " -> None:"),
+            *docstring(f"Input {p.port}: {what(p)}.", "    "),
             *_guarded(
                 fn, [f"# {cw.name}'s handling of {p.port} goes here"], _forward(cw, names, cls)
             ),
+        ]
+    for thread, fn, period in periodic_threads(cw, taken):
+        spec = cw.spec.threads[thread]
+        modes = f"; the model puts it in modes {', '.join(spec.in_modes)}" if spec.in_modes else ""
+        out += [
+            "",
+            "",
+            f"@node.every({period!r})",
+            f"async def {fn}(ctx: Context) -> None:",
+            f'    """Thread {thread}: periodic, every {period:g} s{modes}.',
+            "",
+            "    The runtime calls it on that period while the node runs, one call at a time;",
+            '    a call that overruns skips the ticks it missed."""',
+            *_region(fn, [f"# what {thread} does every period goes here"], "    "),
         ]
     judged = [p for p in cw.inputs if p.role == "judged"]
     if judged:
@@ -288,7 +356,11 @@ def node_module(
             "",
             "",
             f"@legitimate(node, plan={plan_cls})",
-            f"async def check(ctx: Context, proposal: PlanProposal[{plan_cls}]) -> str | None:",
+            *_def(
+                "async def check",
+                f"ctx: Context, proposal: PlanProposal[{plan_cls}]",
+                " -> str | None:",
+            ),
             '    """Judge a proposed plan: None approves it, a string rejects it with that',
             "    reason (an exception rejects it too). A plan that breaks the constraints of",
             '    its message in the model is rejected before your checks run."""',
@@ -298,7 +370,7 @@ def node_module(
             *_region(
                 "check",
                 [
-                    "# placeholder: approves every plan within the model's constraints;",
+                    PLACEHOLDER_CHECK,
                     "# write the checks that make a plan safe to run here",
                     "return None",
                 ],
@@ -312,7 +384,9 @@ def node_module(
             "",
             "",
             f"@gate.on_approved(node, plan={plan_cls})",
-            f"async def act(ctx: Context, proposal: PlanProposal[{plan_cls}]) -> None:",
+            *_def(
+                "async def act", f"ctx: Context, proposal: PlanProposal[{plan_cls}]", " -> None:"
+            ),
             '    """Execute a plan that the Legitimate stage approved (fresh, never run',
             '    before): the only way this stage acts on plans."""',
             *_guarded("act", ["# act on proposal.plan here"], body),

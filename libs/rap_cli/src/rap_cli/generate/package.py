@@ -3,6 +3,11 @@
     result = generate_package(doc, Path("shipmotion"), package="shipmotion")
     result.written, result.kept, result.warnings
 
+The package's files go to ``<out>/src/<package>/`` when that folder exists (a src-layout
+project), else to ``<out>/<package>/``; the tests, ``deploy/`` and the model stay at
+``<out>``. Every generated Python module is as ``ruff format`` writes it and imports
+only what it uses (:mod:`.pyfmt`).
+
 Three kinds of files: those rewritten every time (messages, samples, schemas, deploy
 files), those merged (node modules and tests: their user regions are kept), and those
 written once and then left to the user (``pyproject.toml``, ``README.md``, the package's
@@ -27,12 +32,13 @@ from ..model_yaml import model_to_yaml
 from .deploy_files import DeployError, deploy_files
 from .messages import MessageNames, messages_module, samples_module
 from .names import identifier, unique
-from .nodes import node_module
+from .nodes import PLACEHOLDER_CHECK, node_module
+from .pyfmt import prune_imports
 from .regions import RegionError, merge, regions
 from .tests import component_test, conftest, loop_test
 from .wiring import Wiring, generated, wire
 
-__all__ = ["GenerateError", "Generated", "generate_package", "with_modules"]
+__all__ = ["GenerateError", "Generated", "generate_package", "package_dir", "with_modules"]
 
 Policy = Literal["always", "regions", "once"]
 
@@ -68,7 +74,14 @@ def with_modules(plan: DeploymentPlan, package: str) -> DeploymentPlan:
     return msgspec.structs.replace(plan, components=comps)
 
 
-def _pyproject(package: str, plan: DeploymentPlan) -> str:
+def package_dir(out: Path, package: str) -> str:
+    """Where the files of ``package`` go in ``out`` (relative, POSIX): ``src/<package>``
+    when that folder exists (a src-layout project), else ``<package>``."""
+    return f"src/{package}" if (out / "src" / package).is_dir() else package
+
+
+def _pyproject(package: str, plan: DeploymentPlan, pkg_dir: str) -> str:
+    path = "src" if pkg_dir.startswith("src/") else "."
     return "\n".join(
         [
             "[project]",
@@ -87,7 +100,7 @@ def _pyproject(package: str, plan: DeploymentPlan) -> str:
             "",
             "[tool.pytest.ini_options]",
             'testpaths = ["tests"]',
-            'pythonpath = ["."]',
+            f'pythonpath = ["{path}"]',
             'addopts = "-p no:cacheprovider"',
             "",
         ]
@@ -95,6 +108,8 @@ def _pyproject(package: str, plan: DeploymentPlan) -> str:
 
 
 def _readme(package: str, plan: DeploymentPlan, w: Wiring, modules: dict[str, str]) -> str:
+    """The README of a package whose files are in folder ``package`` (``src/<name>`` in a
+    src layout)."""
     nodes = ", ".join(plan.compute_nodes)
     lines = [
         f"# {plan.system}",
@@ -132,14 +147,14 @@ def _readme(package: str, plan: DeploymentPlan, w: Wiring, modules: dict[str, st
 
 
 def _files(
-    doc: PlanDocument, package: str, source: str
+    doc: PlanDocument, package: str, source: str, pkg_dir: str
 ) -> tuple[DeploymentPlan, Wiring, dict[str, tuple[str, Policy]]]:
     plan = with_modules(doc.plan, package)
     modules = node_modules(doc.plan, package)
     w = wire(plan, package)
     names = MessageNames.of(plan, package)
     files: dict[str, tuple[str, Policy]] = {}
-    pkg = package
+    pkg = pkg_dir
     files[f"{pkg}/__init__.py"] = (f'"""System {plan.system!r} on RAP."""\n', "once")
     files[f"{pkg}/messages.py"] = (messages_module(plan, names, source), "always")
     files[f"{pkg}/samples.py"] = (samples_module(plan, names), "always")
@@ -155,15 +170,22 @@ def _files(
             component_test(cw, w, mod, modules, names, package),
             "regions",
         )
-    files["tests/conftest.py"] = (conftest(), "always")
+    files["tests/conftest.py"] = (conftest(src=pkg_dir != package), "regions")
     files["tests/test_loop.py"] = (loop_test(w, modules, names, package), "regions")
-    files["pyproject.toml"] = (_pyproject(package, plan), "once")
-    files["README.md"] = (_readme(package, plan, w, modules), "once")
+    files["pyproject.toml"] = (_pyproject(package, plan, pkg_dir), "once")
+    files["README.md"] = (_readme(pkg_dir, plan, w, modules), "once")
     files[".gitignore"] = (".rap/\n__pycache__/\ndeploy/wheels/\n", "once")
     from .deploy_files import deploy_files
 
-    for path, text in deploy_files(PlanDocument.from_plan(plan, source), package=package).items():
+    deployed = deploy_files(
+        PlanDocument.from_plan(plan, source), package=package, package_dir=pkg_dir
+    )
+    for path, text in deployed.items():
         files[path] = (text, "always")
+    files = {
+        rel: (prune_imports(text) if rel.endswith(".py") and policy != "regions" else text, policy)
+        for rel, (text, policy) in files.items()
+    }
     return plan, w, files
 
 
@@ -181,8 +203,9 @@ def generate_package(
         raise GenerateError(
             f"--package {package!r} is not a Python package name; use letters, digits and _"
         )
+    pkg_dir = package_dir(out, package)
     try:
-        plan, w, files = _files(doc, package, source)
+        plan, w, files = _files(doc, package, source, pkg_dir)
     except DeployError as exc:
         raise GenerateError(f"{doc.source}: {exc}") from None
     if not deploy_only:
@@ -192,7 +215,10 @@ def generate_package(
         installed = providers(doc.plan)
         try:
             deployed = deploy_files(
-                PlanDocument.from_plan(plan, source), package=package, installed=installed
+                PlanDocument.from_plan(plan, source),
+                package=package,
+                package_dir=pkg_dir,
+                installed=installed,
             )
         except DeployError as exc:
             raise GenerateError(f"{doc.source}: {exc}") from None
@@ -208,7 +234,7 @@ def generate_package(
     for rel, (text, policy) in files.items():
         if policy == "regions":
             try:
-                merged[rel] = merge(text, existing.get(rel), str(out / rel))
+                merged[rel] = prune_imports(merge(text, existing.get(rel), str(out / rel)))
                 if rel in existing:
                     gone = set(regions(existing[rel])) - set(regions(text))
                     kept = [r for r in gone if any(x.strip() for x in regions(existing[rel])[r])]
@@ -266,13 +292,15 @@ def generate_package(
     manifest_path.parent.mkdir(parents=True, exist_ok=True)
     manifest_path.write_text(json.dumps(manifest, indent=1, sort_keys=True) + "\n")
     if not deploy_only:
-        _schemas(out, package, result)
+        _schemas(out, package, pkg_dir, result)
     modules = node_modules(doc.plan, package)
     for name, cw in w.components.items():
-        if any(p.role == "judged" for p in cw.inputs):
+        module = out / pkg_dir / "nodes" / f"{modules[name]}.py"
+        written = module.read_text(encoding="utf-8") if module.is_file() else ""
+        if any(p.role == "judged" for p in cw.inputs) and PLACEHOLDER_CHECK in written:
             result.warnings.append(
                 f"legitimate stage {name!r} approves every well-formed plan until you write "
-                f"its check (region 'check' of {package}/nodes/{modules[name]}.py)"
+                f"its check (region 'check' of {pkg_dir}/nodes/{modules[name]}.py)"
             )
     return result
 
@@ -352,12 +380,13 @@ def write_model(plan: DeploymentPlan, path: Path, header: str) -> None:
     path.write_text(header + model_to_yaml(plan), encoding="utf-8")
 
 
-def _schemas(out: Path, package: str, result: Generated) -> None:
+def _schemas(out: Path, package: str, pkg_dir: str, result: Generated) -> None:
     """The JSON Schema of each message, exported by the generated module itself (in a
     child process: importing it here would register its types in this process)."""
-    target = out / package / "schemas"
+    target = out / pkg_dir / "schemas"
+    root = (out / pkg_dir).parent
     proc = subprocess.run(
-        [sys.executable, "-m", "rap_cli.generate.export_schemas", str(out), package, str(target)],
+        [sys.executable, "-m", "rap_cli.generate.export_schemas", str(root), package, str(target)],
         capture_output=True,
         text=True,
         timeout=120,
@@ -365,8 +394,9 @@ def _schemas(out: Path, package: str, result: Generated) -> None:
     )
     if proc.returncode != 0:
         raise GenerateError(
-            f"{out / package / 'messages.py'}: the generated messages do not import: "
+            f"{out / pkg_dir / 'messages.py'}: the generated messages do not import: "
             f"{proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else proc.returncode}"
             " - report this with the model (rap generate should never write such a module)"
         )
-    result.written += [line for line in proc.stdout.splitlines() if line]
+    prefix = "src/" if pkg_dir != package else ""
+    result.written += [prefix + line for line in proc.stdout.splitlines() if line]

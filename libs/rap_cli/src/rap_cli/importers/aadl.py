@@ -21,6 +21,8 @@ only unnamed ones has none.
 A design that uses RAP's property set (``rap export aadl`` writes one) is read with it:
 see :mod:`.aadl_rap` (names, stages, wire types, knowledge, trust and fabric from
 ``RAP::`` properties; in such a design every declared connection, in declaration order).
+The importer knows that property set itself: a design that says ``with RAP;`` needs no
+``RAP.aadl`` among its files (one given among them is used instead).
 
 What the model's own checks find (an unbound component, an input nobody produces, a type
 mismatch...) is left to them: ``where`` locates every component, port, thread, mode
@@ -45,7 +47,14 @@ from .aadl_deploy import Deployment
 from .aadl_index import Classifier, Index
 from .aadl_instance import build_tree
 from .aadl_messages import Messages
-from .aadl_rap import is_rap_design, knowledge, rap_string, trust_and_fabric
+from .aadl_rap import (
+    builtin_property_sets,
+    infers,
+    is_rap_design,
+    knowledge,
+    rap_string,
+    trust_and_fabric,
+)
 from .aadl_units import check_units
 from .aadl_wiring import Wiring
 
@@ -59,6 +68,7 @@ def import_aadl(paths: Sequence[Path], *, root: str | None = None) -> Imported:
     (see the module's docstring)."""
     sources = [str(p) for p in paths]
     files, diagnostics = parse_aadl_files(paths)
+    files += builtin_property_sets(files)
     diagnostics += [n.diagnostic() for f in files for n in f.notes]
     if any(d.severity == "error" for d in diagnostics):
         return Imported(None, sort_diagnostics(diagnostics), sources=sources, readable=False)
@@ -74,7 +84,9 @@ def import_aadl(paths: Sequence[Path], *, root: str | None = None) -> Imported:
     wiring = Wiring(index, tree, diagnostics)
     deployment = Deployment(index, tree, wiring, diagnostics, rap=rap)
     messages = Messages(index, diagnostics, rap=rap)
-    components = Components(index, tree, wiring, deployment, messages, rap=rap)
+    components = Components(
+        index, tree, wiring, deployment, messages, rap=rap, infer=infers(tree.own)
+    )
     if rap:
         messages.every_message()
     where: dict[tuple[object, ...], Loc] = {}

@@ -3,8 +3,9 @@
 - Name: its ``RAP::Name``; else the subcomponent's name when no other process or device
   has it (compared without case), else its dotted instance path from the root
   (``managing.m``). A component with ``RAP::`` properties (or in a RAP design) takes
-  stage, role, module and the rest from them, nothing from its name
-  (:mod:`.aadl_rap`); ports, threads and modes take their ``RAP::Name`` too.
+  stage, role, module and the rest from them (:mod:`.aadl_rap`); without ``RAP::Stage``
+  nor ``RAP::Role``, its stage still comes from its name (below), unless the root says
+  ``RAP::Infer => false``; ports, threads and modes take their ``RAP::Name`` too.
 - Stage: from the subcomponent's name or its type's, when obvious: ``monitor``,
   ``analysis``/``analyse``/``analyze``, ``plan``, ``legitimate``, ``execute``, or the
   RoboSAPIENS one-letter ``m a p l e`` (the subcomponent's name only); ``knowledge`` or
@@ -20,9 +21,10 @@
   port becomes a trigger on the process port that thread port is connected to, if any;
   otherwise the trigger is kept in the transition's ``origin`` only (the model's
   triggers name ports of the component).
-- Dispatch: ``Dispatch_Protocol``/``Period`` of the process; else of its threads when
-  they agree (periodic at the highest rate); else rpio ``Port_Dispatch_Protocol``/
-  ``Port_Frequency`` of its ports (periodic at the highest rate wins over sporadic).
+- Dispatch: ``RAP::Dispatch`` (and ``RAP::Rate_Hz``) of the process; else its
+  ``Dispatch_Protocol``/``Period``; else of its threads when they agree (periodic at the
+  highest rate); else rpio ``Port_Dispatch_Protocol``/``Port_Frequency`` of its ports
+  (periodic at the highest rate wins over sporadic). Each thread keeps its own.
 """
 
 from __future__ import annotations
@@ -71,7 +73,10 @@ class Components:
     deployment: Deployment
     messages: Messages
     rap: bool = False
-    """A RAP design (:mod:`.aadl_rap`): nothing is inferred from names."""
+    """A RAP design (:mod:`.aadl_rap`): a process's ``RAP::`` properties decide."""
+    infer: bool = True
+    """Infer a stage from a name, a dispatch from threads or ports, where the ``RAP::``
+    properties say none (False: the root says ``RAP::Infer => false``)."""
     specs: dict[str, ComponentSpec] = field(default_factory=dict)
     where: dict[tuple[object, ...], Loc] = field(default_factory=dict)
     name_of: dict[int, str] = field(default_factory=dict)
@@ -116,6 +121,11 @@ class Components:
         threads = self._threads(inst, name, mode_names)
         device = inst.category == "device"
         origin = f"aadl {inst.category} {inst.classifier_text} at {inst.dotted}"
+        dispatch = _dispatch(props)
+        if dispatch is None and self.infer:
+            dispatch = _agree([t.dispatch for t in threads.values() if t.dispatch])
+        if dispatch is None and self.infer:
+            dispatch = self._port_dispatch(inst)
         if self.rap or any(is_rap(a) for a in props):
             return rap_component(
                 props,
@@ -126,14 +136,10 @@ class Components:
                 mode_transitions=transitions,
                 origin=origin,
                 device=device,
-                dispatch=_dispatch(props),
+                dispatch=dispatch,
                 properties=texts(props, skip=_CONSUMED),
+                inferred=None if device or not self.infer else _stage(inst),
             )
-        dispatch = _dispatch(props)
-        if dispatch is None:
-            dispatch = _agree([t.dispatch for t in threads.values() if t.dispatch])
-        if dispatch is None:
-            dispatch = self._port_dispatch(inst)
         return ComponentSpec(
             stage=None if device else _stage(inst),
             role="device" if device else _role(inst),

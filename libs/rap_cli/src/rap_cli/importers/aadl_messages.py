@@ -19,6 +19,9 @@ A port must carry a message: a port typed by an array or a scalar carries a *wra
 message named after the data classifier (``FloatArray``, ``Float_64``) with one field
 ``value`` of that type.
 
+A field's ``Data_Model::Measurement_Unit`` (its own, else its data type's) ends its doc:
+``"North position (unit: m)"``, ``"unit: s"`` without a doc.
+
 A data type with ``RAP::Wire_Type`` is that RAP wire type (no message); ``RAP::Name``,
 ``RAP::Field_Type`` and ``RAP::Constraints`` name a message or field, override a
 field's type and give its constraints (:mod:`.aadl_rap`).
@@ -337,11 +340,23 @@ class Messages:
                 )
                 ftype = f"optional[{ftype}]" if optional else ftype
             called = rap_string(props, "Name") or fname
-            out[called] = FieldSpec(
-                type=ftype, doc=rap_string(props, "Doc") or "", **constraints(props)
-            )
+            doc = rap_string(props, "Doc") or ""
+            unit = self._unit(list(props), resolved)
+            if unit:
+                doc = f"{doc} (unit: {unit})" if doc else f"unit: {unit}"
+            out[called] = FieldSpec(type=ftype, doc=doc, **constraints(props))
             self.where[("messages", name, "fields", called)] = loc
         return out
+
+    def _unit(self, own: list[s.PropertyAssociation], resolved: Resolved) -> str | None:
+        """``Data_Model::Measurement_Unit`` of a field: its own, else its data type's."""
+        found = find_property(own, "Data_Model::Measurement_Unit")
+        if found is None and isinstance(resolved, Classifier):
+            found = find_property(self._props(resolved), "Data_Model::Measurement_Unit")
+        value = found.value if found is not None else None
+        if isinstance(value, s.StringValue):
+            return value.value or None
+        return value.literal if isinstance(value, s.EnumValue) else None
 
     def _elements(
         self, c: Classifier, names: s.PropertyAssociation

@@ -8,7 +8,8 @@ design uses them, they decide over the importer's inferences:
 - ``RAP::Doc`` is its doc; ``RAP::Design_Properties`` (``"Name => value"`` strings) are
   its ``properties``; no ``RAP::`` property is ever copied into ``properties``;
 - ``RAP::Stage``/``Role``/``Module``/``External``/``Run``/``Config`` (JSON)/``Config_Type``/
-  ``Reads``/``Writes``/``Dispatch``/``Rate_Hz`` are the component's fields, and
+  ``Reads``/``Writes``/``Dispatch``/``Rate_Hz`` are the component's fields, ``RAP::Models``
+  (``"name:read"``, ``"name:write"`` strings) its ``models``, and
   ``RAP::Mode_Transitions`` (JSON ``[[from, to, [trigger, ..]], ..]``) all its mode
   transitions when AADL cannot write one (a transition without a trigger);
 - ``RAP::Wire_Type`` on a data type makes a port of it carry that RAP wire type,
@@ -17,15 +18,25 @@ design uses them, they decide over the importer's inferences:
 - the root system's ``RAP::Knowledge_*``, ``Trust_*`` and ``Fabric_*`` give where
   knowledge, trust and the fabric are.
 
-A design whose root system carries a ``RAP::`` property was written by the export
-(:func:`is_rap_design`): there, names come from the design only (no stage inferred from
-a name, compute nodes and buses named by their subcomponent), every message is imported
-used or not, and connections keep their declared order.
+A design whose root system carries a ``RAP::`` property is a RAP design
+(:func:`is_rap_design`, as the export writes): there, compute nodes and buses are named
+by their subcomponent, every message is imported used or not, and connections keep
+their declared order. A process without ``RAP::Stage`` (nor ``RAP::Role``) still gets
+its stage from its name, and one without ``RAP::Dispatch`` its dispatch from AADL's
+properties (its own, else its threads' when they agree), unless the root says
+``RAP::Infer => false`` (:func:`infers`; the export says it: its designs say
+everything).
+
+The importer knows the property set itself (:func:`builtin_property_sets`): a design
+that names ``RAP`` in a ``with`` needs no ``RAP.aadl`` among its files; one given there
+is used instead.
 """
 
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
+from functools import cache
 from typing import Any
 
 from rap_schemas.maplek import Stage
@@ -40,15 +51,20 @@ from rap_schemas.plan import (
     TrustSpec,
 )
 
+from ..aadl import parse_aadl
 from ..aadl import syntax as s
 from ..aadl.syntax import norm
+from ..exporters.aadl import PROPERTY_SET
 from .aadl_index import find_property
 from .aadl_instance import value_text
 
 __all__ = [
+    "BUILTIN_SOURCE",
     "CONSTRAINTS",
+    "builtin_property_sets",
     "constraints",
     "design_properties",
+    "infers",
     "is_rap",
     "is_rap_design",
     "knowledge",
@@ -56,6 +72,7 @@ __all__ = [
     "rap_component",
     "rap_enum",
     "rap_json",
+    "rap_models",
     "rap_number",
     "rap_rate",
     "rap_string",
@@ -72,6 +89,30 @@ _STAGES = frozenset(x.value for x in Stage)
 Props = list[s.PropertyAssociation] | tuple[s.PropertyAssociation, ...]
 
 
+BUILTIN_SOURCE = "RAP.aadl (built in)"
+"""Where diagnostics place the built-in property set."""
+
+
+@cache
+def _builtin() -> s.AadlFile:
+    parsed, found = parse_aadl(PROPERTY_SET, BUILTIN_SOURCE)
+    assert parsed is not None, [str(d) for d in found]  # the export's own text parses
+    return parsed
+
+
+def builtin_property_sets(files: Sequence[s.AadlFile]) -> list[s.AadlFile]:
+    """RAP's property set (the text ``rap export aadl`` writes,
+    :data:`rap_cli.exporters.aadl.PROPERTY_SET`) when a package or property set of
+    ``files`` names ``RAP`` in its ``with`` and no file declares it; else nothing."""
+    declared = {norm(p.name) for f in files for p in f.property_sets}
+    declared |= {norm(p.name) for f in files for p in f.packages}
+    if "rap" in declared:
+        return []
+    withs = [w for f in files for p in f.packages for w in p.withs]
+    withs += [w for f in files for p in f.property_sets for w in p.withs]
+    return [_builtin()] if any(norm(w) == "rap" for w in withs) else []
+
+
 def is_rap(assoc: s.PropertyAssociation) -> bool:
     """Whether ``assoc`` is a property of the ``RAP`` set."""
     return norm(assoc.property_set or "") == "rap"
@@ -80,6 +121,13 @@ def is_rap(assoc: s.PropertyAssociation) -> bool:
 def is_rap_design(root_props: Props) -> bool:
     """Whether the root system carries ``RAP::`` properties (the export wrote it)."""
     return any(is_rap(a) for a in root_props)
+
+
+def infers(root_props: Props) -> bool:
+    """Whether the importer may infer what the design leaves out (a stage from a name, a
+    process's dispatch from its threads): not when the root system says
+    ``RAP::Infer => false`` (as the export does)."""
+    return rap_bool(root_props, "Infer") is not False
 
 
 def without_rap(props: Props) -> list[s.PropertyAssociation]:
@@ -113,6 +161,17 @@ def rap_strings(props: Props, name: str) -> list[str] | None:
         return None
     items = value.items if isinstance(value, s.ListValue) else (value,)
     return [i.value for i in items if isinstance(i, s.StringValue)]
+
+
+def rap_models(props: Props) -> dict[str, str]:
+    """``RAP::Models``: ``"name:access"`` strings as ``{name: access}`` (split at the last
+    colon: a model name may hold one). An access that is not ``read`` or ``write``, or
+    none, is kept as written, for the model's checks to report."""
+    out: dict[str, str] = {}
+    for item in rap_strings(props, "Models") or []:
+        name, sep, access = item.rpartition(":")
+        out[name if sep else item] = access if sep else ""
+    return out
 
 
 def rap_number(props: Props, name: str) -> float | None:
@@ -228,16 +287,23 @@ def rap_component(
     device: bool,
     dispatch: Dispatch | None,
     properties: dict[str, str],
+    inferred: Stage | None = None,
 ) -> ComponentSpec:
-    """A component whose ``RAP::`` properties say what it is: nothing is inferred from
-    its name; ``dispatch`` (from AADL's properties) counts when ``RAP::Dispatch`` is
-    absent."""
+    """A component whose ``RAP::`` properties say what it is: ``inferred`` (the stage its
+    name says) counts when neither ``RAP::Stage`` nor ``RAP::Role`` is given, ``dispatch``
+    (from AADL's properties) when ``RAP::Dispatch`` is absent (at ``RAP::Rate_Hz`` when
+    that is given)."""
     stage = rap_enum(props, "Stage")
     kind = rap_enum(props, "Dispatch")
     kind = kind.lower() if kind else None
     if kind in ("periodic", "sporadic"):
         rate = rap_number(props, "Rate_Hz")
         dispatch = Dispatch(kind=kind, rate_hz=rate if rate and rate > 0 else None)  # type: ignore[arg-type]
+    else:
+        dispatch = rap_rate(dispatch, props)
+    named = Stage(stage.lower()) if stage and stage.lower() in _STAGES else None
+    if stage is None and rap_string(props, "Role") is None:
+        named = inferred
     config = rap_json(props, "Config")
     moves = rap_json(props, "Mode_Transitions")
     if isinstance(moves, list):
@@ -249,7 +315,7 @@ def rap_component(
     external = rap_bool(props, "External")
     return ComponentSpec(
         module=rap_string(props, "Module"),
-        stage=Stage(stage.lower()) if stage and stage.lower() in _STAGES else None,
+        stage=named,
         role=rap_string(props, "Role") or ("device" if device else None),
         external=device if external is None else external,
         node=node,
@@ -259,6 +325,7 @@ def rap_component(
         run=rap_strings(props, "Run") or [],
         reads=rap_strings(props, "Reads") or [],
         writes=rap_strings(props, "Writes") or [],
+        models=rap_models(props),
         dispatch=dispatch,
         threads=threads,
         modes=modes,
