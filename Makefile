@@ -6,16 +6,18 @@ RUN := $(UV) run --frozen --no-sync
 PYTEST_ARGS ?=
 DEMO_ARGS ?=
 EVAL_ARGS ?=
+EVAL_SHIP_ARGS ?= --runs 5 --rerun
 FUZZ_ARGS ?=
 FAULTS_ARGS ?=
 # third-party AADL / RoboChart designs the importers must read (not part of this repository)
 DESIGN_MODELS ?= $(abspath $(CURDIR)/../shared/models)
 
-.PHONY: help setup sync test acceptance lint format typecheck schemas bench bench-fabric bench-knowledge bench-sim bench-loop bench-fleet bench-trust bench-secure fuzz faults demo eval clean
+.PHONY: help setup sync test acceptance lint format typecheck schemas bench bench-fabric bench-knowledge bench-sim bench-loop bench-fleet bench-trust bench-secure fuzz faults demo eval eval-ship clean
 
 help:
 	@echo "make demo       run the lidar-occlusion loop end to end (out/demo/summary.json, demo.rrd)"
 	@echo "make eval       evaluate the loop on seeded scenarios (out/eval/lidar_occlusion.json)"
+	@echo "make eval-ship  the ship-motion case on seeded weather fronts (out/eval/ship_motion.json, .rrd)"
 	@echo "make test       run the test suite (RAP_REQUIRE_SERVICES=1 makes missing servers fail)"
 	@echo "make acceptance the design parsers on third-party designs (DESIGN_MODELS=folder)"
 	@echo "make lint       ruff format check + ruff lint"
@@ -105,6 +107,10 @@ demo: setup
 # N seeded scenarios with the loop and without: out/eval/lidar_occlusion.json
 eval: setup
 	$(RUN) python -m lidar_occlusion.eval $(EVAL_ARGS)
+
+# the ship-motion case: N seeded weather fronts, retraining online: out/eval/ship_motion.json
+eval-ship: setup
+	$(RUN) python -m ship_motion.eval $(EVAL_SHIP_ARGS)
 
 # RAP's own distributions as wheels (they are not on PyPI), e.g. for the image of a package
 # that rap generate wrote: make wheels WHEELS_DIR=<generated folder>/deploy/wheels

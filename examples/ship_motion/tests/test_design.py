@@ -1,6 +1,6 @@
 """The case's AADL design (``design/``) imported with RAP's toolkit: what the model holds,
 and that ``rap check`` finds nothing wrong with the design nor with the model written
-from it."""
+from it. ``design/`` holds no ``RAP.aadl``: the importer knows RAP's property set."""
 
 from __future__ import annotations
 
@@ -30,6 +30,7 @@ def plan(imported: Imported) -> DeploymentPlan:
 
 
 def test_the_design_imports_and_checks_clean(imported: Imported) -> None:
+    assert not (DESIGN / "RAP.aadl").exists()  # `with RAP;` finds the built-in set
     assert [str(d) for d in imported.diagnostics if d.severity != "note"] == []
     checked = checked_import(imported, str(DESIGN))  # what `rap check design/` reports
     assert checked.ok
@@ -95,6 +96,7 @@ def test_ports_kinds_types_and_topics(plan: DeploymentPlan) -> None:
         ("monitor", "new_data"): ("out", "event", None, "new-data"),
         ("analysis", "new_data"): ("in", "event", None, "new-data"),
         ("analysis", "anomaly"): ("out", "event-data", "Anomaly", "anomaly"),
+        ("plan", "new_data"): ("in", "event", None, "new-data"),
         ("plan", "anomaly"): ("in", "event-data", "Anomaly", "anomaly"),
         ("plan", "verdict"): ("in", "event-data", "Verdict", "model-verdict"),
         ("plan", "proposal"): ("out", "event-data", "ModelPlan", "new-plan"),
@@ -110,12 +112,19 @@ def test_knowledge_keys_and_config(plan: DeploymentPlan) -> None:
     c = plan.components
     assert c["monitor"].writes == ["ship_pose", "weather", "prediction_score"]
     assert (c["analysis"].reads, c["analysis"].writes) == (
-        ["prediction_score"],
+        ["prediction_score", "handling_anomaly", "active_model"],
         ["anomaly", "handling_anomaly"],
     )
-    assert c["plan"].reads == ["ship_pose", "weather", "anomaly"]
+    assert c["plan"].reads == ["ship_pose", "anomaly"]
     assert c["execute"].writes == ["active_model", "handling_anomaly"]
     assert c["execute"].config == {"plan_max_age": 60.0}
+    # the model store: Plan puts candidates, Execute pins, Legitimate and the ship read
+    assert {n: dict(x.models) for n, x in c.items() if x.models} == {
+        "predictors": {"ship_motion": "read"},
+        "plan": {"ship_motion": "write"},
+        "legitimate": {"ship_motion": "read"},
+        "execute": {"ship_motion": "write"},
+    }
 
 
 def test_messages_and_field_types(plan: DeploymentPlan) -> None:
@@ -165,11 +174,12 @@ def test_compute_nodes_bus_knowledge_and_connections(plan: DeploymentPlan) -> No
     assert (plan.buses["link"].kind, plan.buses["link"].nodes) == ("radio", ["vessel", "shore"])
     assert plan.knowledge.node == "shore"
     links = {(c.from_, c.to): c.bus for c in plan.connections}
-    assert len(links) == len(plan.connections) == 11
+    assert len(links) == len(plan.connections) == 12
     # what crosses the radio link is bound to it; what stays on one computer is not
     assert {ends for ends, bus in links.items() if bus == "link"} == {
         ("monitor.new_data", "analysis.new_data"),
         ("legitimate.approved", "execute.approved"),
+        ("monitor.new_data", "plan.new_data"),
     }
     for ends, bus in links.items():
         src, dst = (plan.components[end.split(".")[0]].node for end in ends)
@@ -184,8 +194,8 @@ def test_threads_and_their_dispatch(plan: DeploymentPlan) -> None:
     }
     assert got == {
         ("simulator", "step"): ("periodic", 10.0),
-        ("predictors", "physics"): ("periodic", 1.0),
-        ("predictors", "learned"): ("periodic", 1.0),
+        ("predictors", "physics"): ("sporadic", 1.0),  # on each pose sample
+        ("predictors", "learned"): ("sporadic", 1.0),
         ("monitor", "collect"): ("sporadic", 10.0),
         ("analysis", "detect"): ("sporadic", 1.0),
         ("plan", "planner"): ("sporadic", 1.0),

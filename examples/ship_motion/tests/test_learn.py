@@ -8,6 +8,7 @@ import time
 import numpy as np
 import onnx
 import pytest
+
 from ship_motion.features import FeatureSpec, features, windows
 from ship_motion.learn import (
     TrainingError,

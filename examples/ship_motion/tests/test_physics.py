@@ -7,6 +7,7 @@ import math
 import msgspec
 import numpy as np
 import pytest
+
 from ship_motion.physics import (
     Disturbance,
     History,

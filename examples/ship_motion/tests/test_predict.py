@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+
 from ship_motion.learn import train_onnx
 from ship_motion.physics import History, ScenarioSpec, ShipCommand, ShipState, simulate
 from ship_motion.predict import (
