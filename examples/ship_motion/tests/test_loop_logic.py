@@ -123,3 +123,20 @@ async def test_legitimate_is_a_replay_twin(runs: dict[int, History]) -> None:
     short = await ask(twin, good, ReplayBelief(history=front.between(1000.0, 1100.0), running=None))
     assert short.belief.thin
     assert "no running model to compare with" in short.belief.notes
+
+
+def test_a_restarted_clock_starts_the_predictors_history_afresh(runs: dict[int, History]) -> None:
+    history = runs[0]
+    model = train_onnx(history.between(*CALM))
+    ship = ShipPredictors()
+    ship.load(1, model, model_hash(model))
+    for s in history.between(0.0, 100.0):
+        ship.observe(s)
+    again = [ship.observe(s) for s in history.between(0.0, 50.0)]
+    assert ship.restarted == 1
+    assert ship.version == 1
+    assert any(p.predictor == "data_driven" for p in again[-1].paths)
+    # a gap in the samples skips the data-driven path, it does not unload the model
+    gap = ship.observe(next(iter(history.between(60.0, 61.0))))
+    assert [p.predictor for p in gap.paths] == ["kinematic", "dynamic"]
+    assert ship.learned is not None

@@ -90,6 +90,8 @@ class ShipPredictors:
     version: int = 0
     trackers: dict[str, ScoreTracker] = field(init=False)
     recent: deque[ShipState] = field(init=False)
+    restarted: int = 0
+    """Times the samples' time went back (the ship's clock restarted): history dropped."""
 
     def __post_init__(self) -> None:
         self.kinematic = KinematicPredictor(self.horizon)
@@ -123,7 +125,12 @@ class ShipPredictors:
 
     def observe(self, state: ShipState) -> Step:
         if self.recent and state.t <= self.recent[-1].t:
-            raise ValueError(f"sample at t={state.t} is not after t={self.recent[-1].t}")
+            # time went back: the ship's clock restarted (a new run); what was recorded
+            # belongs to another time line and would score the paths against it
+            self.restarted += 1
+            self.recent.clear()
+            for name in self.trackers:
+                self.trackers[name] = ScoreTracker(self.window)
         self.recent.append(state)
         for tracker in self.trackers.values():
             tracker.observe(state)
