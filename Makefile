@@ -12,7 +12,7 @@ FAULTS_ARGS ?=
 # third-party AADL / RoboChart designs the importers must read (not part of this repository)
 DESIGN_MODELS ?= $(abspath $(CURDIR)/../shared/models)
 
-.PHONY: help setup sync test acceptance lint format typecheck schemas bench bench-fabric bench-knowledge bench-sim bench-loop bench-fleet bench-trust bench-secure fuzz faults demo eval eval-ship clean
+.PHONY: help setup sync test acceptance lint format typecheck schemas bench bench-fabric bench-knowledge bench-sim bench-twin bench-loop bench-fleet bench-trust bench-secure fuzz faults demo eval eval-ship clean
 
 help:
 	@echo "make demo       run the lidar-occlusion loop end to end (out/demo/summary.json, demo.rrd)"
@@ -59,9 +59,9 @@ schemas: setup
 	$(RUN) python -m rap_schemas reference docs/toolkit.md
 	$(RUN) python -m sim_world.schema
 
-# Both suites run even if the first misses a budget; make fails if either did.
+# Every suite runs even if one misses a budget; make fails if any did.
 bench: setup
-	@rc=0; for b in fabric knowledge sim trust secure; do $(RUN) python -m bench.$$b || rc=1; done; exit $$rc
+	@rc=0; for b in fabric knowledge sim twin trust secure; do $(RUN) python -m bench.$$b || rc=1; done; exit $$rc
 
 bench-fabric: setup
 	$(RUN) python -m bench.fabric
@@ -71,6 +71,10 @@ bench-knowledge: setup
 
 bench-sim: setup
 	$(RUN) python -m bench.sim
+
+# The lidar case's digital twin: a rollout of one plan period against the simulator (~1 min)
+bench-twin: setup
+	$(RUN) python -m bench.twin
 
 bench-trust: setup
 	$(RUN) python -m bench.trust

@@ -1,6 +1,8 @@
-"""``make eval``: does the loop help? N seeded scenarios, each with the loop and without.
+"""``make eval``: does the loop help, and which planner costs least? N seeded scenarios,
+each run in five configurations.
 
-    python -m lidar_occlusion.eval --runs 20 --seed 1 [--duration 120] [--out out/eval]
+    python -m lidar_occlusion.eval --runs 20 --seed 1 [--duration 200] [--out out/eval]
+        [--configurations no_loop,reference,...] [--jobs 2]
 
 A scenario (:func:`scenario`) is a 10 x 8 m room with the robot driving a rectangular
 route; 2 to 5 obstacles, half of them on the route; one occlusion, its mode taking turns
@@ -8,15 +10,27 @@ route; 2 to 5 obstacles, half of them on the route; one occlusion, its mode taki
 where every anomaly is a false one), at a random angle, from a random start to 5 s
 before the end. Runs whose occlusion covers the robot's front (within 30 degrees of
 straight ahead) when it starts are reported apart as well: there an unhandled occlusion
-hides what the robot drives into. Each runs
-in lockstep, in this process, once with the loop and once without, from the same seed.
-Writes ``<out>/lidar_occlusion.json`` (every run and the aggregate) and prints a table.
+hides what the robot drives into.
+
+Each scenario runs, from the same seed, in lockstep, in every configuration
+(:data:`CONFIGURATIONS`): no loop; the reference planner; the reference planner with the
+twin-backed Legitimate stage; the lookahead planner; the lookahead planner with the twin.
+The loop's nodes come from :func:`lidar_occlusion.nodes.build` with the settings of
+:func:`configuration`. ``--jobs`` worker processes (``python -m lidar_occlusion.eval
+--worker SEEDS``, one JSON line per scenario on stdout) share the scenarios; the figures
+do not depend on it.
+
+Writes ``<out>/lidar_occlusion.json`` - the aggregate (its ``loop`` and ``no_loop``
+figures are the reference planner's and the no-loop run's; ``configurations`` has every
+configuration's) and every run - and prints a side-by-side table.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import math
+import sys
 import time
 from pathlib import Path
 from typing import Annotated, Any
@@ -25,13 +39,26 @@ import anyio
 import msgspec
 import numpy as np
 import typer
-from rap_sdk.entry import run_cli
+from rap_sdk import Node
+from rap_sdk.entry import EntryError, run_cli
 from sim_world.occlusion import occlusion_mask
 from sim_world.world import WorldSpec
 
+from .nodes import build
+from .planning import LegitimacyConfig, PlanConfig
 from .scenario import run_in_process
 
-__all__ = ["MODES", "aggregate", "scenario"]
+__all__ = [
+    "CONFIGURATIONS",
+    "MODES",
+    "TWIN_CODES",
+    "Unavailable",
+    "aggregate",
+    "configuration",
+    "run_scenario",
+    "scenario",
+    "twin_rejections",
+]
 
 cli = typer.Typer(add_completion=False, help=__doc__)
 
@@ -113,8 +140,156 @@ def _p(values: list[float], q: float) -> float | None:
     return float(np.percentile(values, q, method="inverted_cdf")) if values else None
 
 
+CONFIGURATIONS: dict[str, tuple[str | None, bool]] = {
+    "no_loop": (None, False),
+    "reference": ("reference", False),
+    "reference_twin": ("reference", True),
+    "lookahead": ("lookahead", False),
+    "lookahead_twin": ("lookahead", True),
+}
+"""Name -> (planner, or None for no loop at all; the twin-backed Legitimate stage?)."""
+LABELS = {
+    "no_loop": "no loop",
+    "reference": "reference",
+    "reference_twin": "ref + twin",
+    "lookahead": "lookahead",
+    "lookahead_twin": "look + twin",
+}
+TWIN_CODES = ("belief", "limits", "collision", "clearance", "pose-mismatch")
+"""The reject codes of the twin (:mod:`lidar_occlusion.twin`); ``spec:<output>`` too."""
+GOAL_ROUTES = 0.95
+"""The goal: no collision, and routes completed within 5 % of the no-loop run."""
+
+
+class Unavailable(LookupError):
+    """A configuration this build cannot run (what it lacks is in the message)."""
+
+
+def configuration(name: str) -> tuple[PlanConfig, LegitimacyConfig]:
+    """The loop's settings in configuration ``name`` (one of :data:`CONFIGURATIONS`
+    but ``no_loop``), for the scenarios' route: ``build(robot, planning=...,
+    legitimacy=...)`` makes its nodes.
+    Raises :class:`Unavailable` when this build has no twin-backed Legitimate stage."""
+    if name not in CONFIGURATIONS or CONFIGURATIONS[name][0] is None:
+        loops = ", ".join(n for n, (p, _) in CONFIGURATIONS.items() if p is not None)
+        raise ValueError(f"no loop configuration {name!r}: choose from {loops}")
+    planner, twin = CONFIGURATIONS[name]
+    route = {"route": ROUTE, "loop_route": False}  # every scenario's robot drives ROUTE once
+    planning = msgspec.convert({"planner": planner, **route}, PlanConfig)
+    if not twin:
+        return planning, LegitimacyConfig()
+    try:
+        legitimacy = msgspec.convert({"twin": True, **route}, LegitimacyConfig)
+    except msgspec.ValidationError as exc:
+        raise Unavailable(
+            f"configuration {name!r} needs the twin-backed Legitimate stage "
+            f"(LegitimacyConfig.twin), which this build lacks ({exc})"
+        ) from None
+    return planning, legitimacy
+
+
+def _nodes(name: str, robot: str) -> list[Node]:
+    planning, legitimacy = configuration(name)
+    return build(robot, planning=planning, legitimacy=legitimacy).nodes
+
+
+def twin_rejections(codes: dict[str, int]) -> int:
+    """Rejections whose reason starts with a twin finding code (``collision: ...``)."""
+    return sum(n for c, n in codes.items() if c in TWIN_CODES or c.startswith("spec:"))
+
+
+async def run_scenario(seed: int, duration: float, names: list[str]) -> dict[str, Any]:
+    """Scenario ``seed`` in each configuration of ``names``: one entry of ``results``."""
+    mode, world = scenario(seed, duration)
+    robot = world.robots[0].name
+    runs: dict[str, dict[str, Any]] = {}
+    for name in names:
+        if CONFIGURATIONS[name][0] is None:
+            runs[name] = await run_in_process(world, loop=False, duration=duration)
+        else:
+            runs[name] = await run_in_process(world, duration=duration, nodes=_nodes(name, robot))
+    entry: dict[str, Any] = {"seed": seed, "mode": mode, "front": covers_front(world)}
+    if "reference" in runs:
+        entry["loop"] = runs["reference"]
+    if "no_loop" in runs:
+        entry["no_loop"] = runs["no_loop"]
+    entry["configurations"] = runs
+    return entry
+
+
+def _side(k: str, rs: list[dict[str, Any]]) -> dict[str, Any]:
+    return {
+        "collisions": sum(r[k]["collisions"] for r in rs),
+        "runs_with_collisions": sum(1 for r in rs if r[k]["collisions"]),
+        "routes_completed": sum(1 for r in rs if r[k]["route_completed"]),
+        "waypoints_reached": sum(r[k]["waypoints_reached"] for r in rs),
+    }
+
+
+def _configuration(name: str, runs: list[dict[str, Any]]) -> dict[str, Any]:
+    ms = [r["configurations"][name] for r in runs]
+    front = [r["configurations"][name] for r in runs if r["front"]]
+    codes: dict[str, int] = {}
+    for m in ms:
+        for c, n in m.get("rejections", {}).items():
+            codes[c] = codes.get(c, 0) + n
+    return {
+        "collisions": sum(m["collisions"] for m in ms),
+        "runs_with_collisions": sum(1 for m in ms if m["collisions"]),
+        "routes_completed": sum(1 for m in ms if m["route_completed"]),
+        "waypoints_reached": sum(m["waypoints_reached"] for m in ms),
+        "spin_s": round(sum(m.get("spin_s", 0.0) for m in ms), 1),
+        "plans_proposed": sum(m["plans_proposed"] for m in ms),
+        "plans_rejected": sum(m["plans_rejected"] for m in ms),
+        "plans_rejected_twin": twin_rejections(codes),
+        "rejections": codes,
+        "front_blind_collisions": sum(m["collisions"] for m in front),
+        "by_mode": {
+            mode: {
+                "collisions": sum(r["configurations"][name]["collisions"] for r in rs),
+                "routes_completed": sum(
+                    1 for r in rs if r["configurations"][name]["route_completed"]
+                ),
+            }
+            for mode in MODES
+            if (rs := [r for r in runs if r["mode"] == mode])
+        },
+    }
+
+
 def aggregate(runs: list[dict[str, Any]]) -> dict[str, Any]:
-    """The figures of "What working means" over ``runs``."""
+    """The figures of "What working means" over ``runs``: detection from the reference
+    planner's runs (``loop``), ``loop`` / ``no_loop`` as before, and ``configurations``
+    side by side with whether each meets the goal."""
+    names = [n for n in CONFIGURATIONS if runs and all(n in r["configurations"] for r in runs)]
+    configs = {n: _configuration(n, runs) for n in names}
+    if "no_loop" in configs:
+        floor = GOAL_ROUTES * configs["no_loop"]["routes_completed"]
+        for c in configs.values():
+            c["meets_goal"] = c["collisions"] == 0 and c["routes_completed"] >= floor - 1e-9
+    out: dict[str, Any] = {
+        "runs": len(runs),
+        "occlusion_runs": sum(1 for r in runs if r["mode"] != "none"),
+        "front_blind_runs": sum(1 for r in runs if r["front"]),
+        "goal": "0 collisions and routes completed >= 95 % of the no-loop run's",
+    }
+    if runs and all("loop" in r for r in runs):
+        out.update(_detection(runs))
+    legacy = [k for k in ("loop", "no_loop") if runs and all(k in r for r in runs)]
+    for k in legacy:
+        out[k] = _side(k, runs)
+    front = [r for r in runs if r["front"]]
+    out["front_blind"] = {k: _side(k, front) for k in legacy}
+    out["by_mode"] = {
+        m: {"runs": len(rs), **{k: _side(k, rs) for k in legacy}}
+        for m in MODES
+        if (rs := [r for r in runs if r["mode"] == m])
+    }
+    out["configurations"] = configs
+    return out
+
+
+def _detection(runs: list[dict[str, Any]]) -> dict[str, Any]:
     occl = [r for r in runs if r["mode"] != "none"]
     onsets = sum(r["loop"]["occlusion_onsets"] for r in occl)
     detected = sum(r["loop"]["detected_onsets"] for r in occl)
@@ -133,25 +308,7 @@ def aggregate(runs: list[dict[str, Any]]) -> dict[str, Any]:
         for r in runs
         if r["loop"]["loop_latency_ms"]["p50"] is not None
     ]
-
-    def side(k: str, rs: list[dict[str, Any]]) -> dict[str, Any]:
-        return {
-            "collisions": sum(r[k]["collisions"] for r in rs),
-            "runs_with_collisions": sum(1 for r in rs if r[k]["collisions"]),
-            "routes_completed": sum(1 for r in rs if r[k]["route_completed"]),
-            "waypoints_reached": sum(r[k]["waypoints_reached"] for r in rs),
-        }
-
-    by_mode = {
-        m: {"runs": len(rs), "loop": side("loop", rs), "no_loop": side("no_loop", rs)}
-        for m in MODES
-        if (rs := [r for r in runs if r["mode"] == m])
-    }
-    front = [r for r in runs if r["front"]]
     return {
-        "runs": len(runs),
-        "occlusion_runs": len(occl),
-        "front_blind_runs": len(front),
         "occlusion_onsets": onsets,
         "detection_rate": detected / onsets if onsets else None,
         "detection_latency_scans": {"p50": _p(latencies, 50), "max": max(latencies, default=None)},
@@ -163,68 +320,159 @@ def aggregate(runs: list[dict[str, Any]]) -> dict[str, Any]:
         "anomaly_to_robot_ms_p50": {"p50": _p(to_robot, 50), "max": max(to_robot, default=None)},
         "loop_latency_ms_p50": {"p50": _p(loop_p50, 50), "max": max(loop_p50, default=None)},
         "lockstep_timeouts": sum(r["loop"].get("lockstep_timeouts", 0) for r in runs),
-        "loop": side("loop", runs),
-        "no_loop": side("no_loop", runs),
-        "front_blind": {"loop": side("loop", front), "no_loop": side("no_loop", front)},
-        "by_mode": by_mode,
     }
 
 
-def _table(agg: dict[str, Any]) -> str:
-    lo, no = agg["loop"], agg["no_loop"]
-    rate = agg["detection_rate"]
+def table(agg: dict[str, Any], unavailable: dict[str, str] | None = None) -> str:
+    """The aggregate for a person: detection, then the configurations side by side."""
     lines = [
         "",
-        f"lidar-occlusion evaluation: {agg['runs']} runs ({agg['occlusion_runs']} with occlusion)",
-        f"  detection rate          {'-' if rate is None else f'{rate:.1%}'} of "
-        f"{agg['occlusion_onsets']} onsets; latency p50 "
-        f"{agg['detection_latency_scans']['p50']} scans, "
-        f"max {agg['detection_latency_scans']['max']}",
-        f"  false anomalies         {agg['false_anomalies']} "
-        f"({agg['false_anomalies_obstacle_only']} in obstacle-only runs); "
-        f"{agg['overreaching_masks']} masks claimed > pi/48 beyond a real occlusion",
-        f"  anomaly -> plan at robot p50 of run p50s {agg['anomaly_to_robot_ms_p50']['p50']} ms",
-        "",
-        f"  {'':24}{'with loop':>12}{'without':>12}",
-        f"  {'collisions':24}{lo['collisions']:>12}{no['collisions']:>12}",
-        f"  {'runs with a collision':24}{lo['runs_with_collisions']:>12}"
-        f"{no['runs_with_collisions']:>12}",
-        f"  {'routes completed':24}{lo['routes_completed']:>12}{no['routes_completed']:>12}",
-        f"  {'waypoints reached':24}{lo['waypoints_reached']:>12}{no['waypoints_reached']:>12}",
-        f"  {'front-blind runs':24}{agg['front_blind_runs']:>12}",
-        f"  {'  collisions':24}{agg['front_blind']['loop']['collisions']:>12}"
-        f"{agg['front_blind']['no_loop']['collisions']:>12}",
-        "",
-        f"  {'mode':10}{'runs':>6}{'collisions loop/no':>22}{'completed loop/no':>20}",
+        f"lidar-occlusion evaluation: {agg['runs']} runs "
+        f"({agg['occlusion_runs']} with occlusion, {agg['front_blind_runs']} front-blind)",
     ]
-    for m, d in agg["by_mode"].items():
-        lines.append(
-            f"  {m:10}{d['runs']:>6}"
-            f"{d['loop']['collisions']:>14} / {d['no_loop']['collisions']:<5}"
-            f"{d['loop']['routes_completed']:>12} / {d['no_loop']['routes_completed']:<5}"
+    if "detection_rate" in agg:
+        rate = agg["detection_rate"]
+        lines += [
+            f"  detection rate          {'-' if rate is None else f'{rate:.1%}'} of "
+            f"{agg['occlusion_onsets']} onsets; latency p50 "
+            f"{agg['detection_latency_scans']['p50']} scans, "
+            f"max {agg['detection_latency_scans']['max']}",
+            f"  false anomalies         {agg['false_anomalies']} "
+            f"({agg['false_anomalies_obstacle_only']} in obstacle-only runs); "
+            f"{agg['overreaching_masks']} masks claimed > pi/48 beyond a real occlusion",
+            f"  anomaly -> plan at robot p50 of run p50s "
+            f"{agg['anomaly_to_robot_ms_p50']['p50']} ms",
+        ]
+    configs: dict[str, dict[str, Any]] = agg["configurations"]
+    names = list(configs)
+    w = 13
+    lines += ["", f"  {'':26}" + "".join(f"{LABELS[n]:>{w}}" for n in names)]
+    rows = [
+        ("collisions", "collisions"),
+        ("runs with a collision", "runs_with_collisions"),
+        ("routes completed", "routes_completed"),
+        ("waypoints reached", "waypoints_reached"),
+        ("time spinning (s)", "spin_s"),
+        ("plans proposed", "plans_proposed"),
+        ("plans rejected", "plans_rejected"),
+        ("  by the twin", "plans_rejected_twin"),
+        ("front-blind collisions", "front_blind_collisions"),
+    ]
+    for label, key in rows:
+        cells = "".join(f"{configs[n][key]!s:>{w}}" for n in names)
+        lines.append(f"  {label:26}{cells}")
+    if all("meets_goal" in configs[n] for n in names):
+        cells = "".join(f"{'yes' if configs[n]['meets_goal'] else 'no':>{w}}" for n in names)
+        lines.append(f"  {'meets the goal (*)':26}{cells}")
+        lines.append(f"  (*) {agg['goal']}")
+    lines += ["", f"  {'collisions / routes':26}" + "".join(f"{LABELS[n]:>{w}}" for n in names)]
+    for mode in MODES:
+        if mode not in agg["by_mode"]:
+            continue
+        cells = "".join(
+            f"{configs[n]['by_mode'][mode]['collisions']:>{w - 5}} / "
+            f"{configs[n]['by_mode'][mode]['routes_completed']:<2}"
+            for n in names
         )
+        lines.append(f"  {mode + ' (' + str(agg['by_mode'][mode]['runs']) + ')':26}{cells}")
+    for name, why in (unavailable or {}).items():
+        lines.append(f"  not run: {LABELS[name]}: {why}")
     return "\n".join(lines)
 
 
-async def _run(runs: int, seed: int, duration: float) -> list[dict[str, Any]]:
+def _progress(entry: dict[str, Any], done: int, runs: int, t0: float) -> None:
+    cells = "  ".join(
+        f"{LABELS[n]} {m['collisions']}c {m['waypoints_reached']}wp {m.get('spin_s', 0.0):.0f}s"
+        for n, m in entry["configurations"].items()
+    )
+    print(
+        f"[{time.perf_counter() - t0:6.1f} s] run {done}/{runs} seed {entry['seed']} "
+        f"{entry['mode']:7}{' front' if entry['front'] else '      '}  {cells}",
+        flush=True,
+    )
+
+
+async def _in_process(seeds: list[int], duration: float, names: list[str]) -> list[dict[str, Any]]:
     out: list[dict[str, Any]] = []
     t0 = time.perf_counter()
-    for i in range(runs):
-        s = seed + i
-        mode, world = scenario(s, duration)
-        with_loop = await run_in_process(world, loop=True, duration=duration)
-        without = await run_in_process(world, loop=False, duration=duration)
-        front = covers_front(world)
-        out.append({"seed": s, "mode": mode, "front": front, "loop": with_loop, "no_loop": without})
-        print(
-            f"[{time.perf_counter() - t0:6.1f} s] run {i + 1}/{runs} seed {s} {mode:7}"
-            f"{' front' if front else '      '} "
-            f"anomalies {with_loop['anomalies']:3}  collisions {with_loop['collisions']} "
-            f"with loop, {without['collisions']} without  waypoints "
-            f"{with_loop['waypoints_reached']} / {without['waypoints_reached']}",
-            flush=True,
-        )
+    for s in seeds:
+        out.append(await run_scenario(s, duration, names))
+        _progress(out[-1], len(out), len(seeds), t0)
     return out
+
+
+async def _workers(
+    seeds: list[int], duration: float, names: list[str], jobs: int
+) -> list[dict[str, Any]]:
+    """The scenarios shared among ``jobs`` worker processes (every ``jobs``-th each)."""
+    got: dict[int, dict[str, Any]] = {}
+    failed: list[str] = []
+    t0 = time.perf_counter()
+
+    async def work(part: list[int]) -> None:
+        cmd = [
+            sys.executable,
+            "-m",
+            "lidar_occlusion.eval",
+            "--worker",
+            ",".join(map(str, part)),
+            "--duration",
+            repr(duration),
+            "--configurations",
+            ",".join(names),
+        ]
+        async with await anyio.open_process(cmd, stdin=None, stderr=None) as proc:
+            assert proc.stdout is not None
+            buf = b""
+            async for chunk in proc.stdout:
+                *lines, buf = (buf + chunk).split(b"\n")
+                for line in lines:
+                    if line.startswith(b"{"):
+                        entry = json.loads(line)
+                        got[entry["seed"]] = entry
+                        _progress(entry, len(got), len(seeds), t0)
+            code = await proc.wait()
+        if code != 0:
+            failed.append(f"the worker for seeds {part[0]}.. exited with {code}")
+
+    async with anyio.create_task_group() as tg:
+        for i in range(jobs):
+            tg.start_soon(work, seeds[i::jobs])
+    missing = [s for s in seeds if s not in got]
+    if failed or missing:
+        raise EntryError(
+            f"{'; '.join(failed) or 'a worker stopped early'} (seeds without a result: "
+            f"{missing}); its log is above - run with --jobs 1 to see it in this process",
+            1,
+        )
+    return [got[s] for s in seeds]
+
+
+def _same(results: list[dict[str, Any]], a: str, b: str) -> bool:
+    """Did configurations ``a`` and ``b`` give the same figures in every run, with some
+    spinning (a selection that was not wired)?"""
+    keys = ("spin_s", "plans_proposed", "waypoints_reached", "collisions", "distance_m")
+    pairs = [
+        (r["configurations"][a], r["configurations"][b])
+        for r in results
+        if a in r["configurations"] and b in r["configurations"]
+    ]
+    return (
+        bool(pairs)
+        and any(x.get("spin_s", 0.0) > 0 for x, _ in pairs)
+        and all(all(x.get(k) == y.get(k) for k in keys) for x, y in pairs)
+    )
+
+
+def _names(text: str) -> list[str]:
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    bad = [n for n in names if n not in CONFIGURATIONS]
+    if bad or not names:
+        raise typer.BadParameter(
+            f"{bad or 'none given'}: choose from {', '.join(CONFIGURATIONS)}",
+            param_hint="--configurations",
+        )
+    return [n for n in CONFIGURATIONS if n in names]  # in the table's order
 
 
 @cli.command()
@@ -233,15 +481,79 @@ def main(
     seed: Annotated[int, typer.Option(help="Seed of the first scenario.")] = 1,
     duration: Annotated[float, typer.Option(help="Sim seconds per run.", min=20)] = 200.0,
     out: Annotated[Path, typer.Option(help="Output directory.")] = Path("out/eval"),
+    configurations: Annotated[
+        str,
+        typer.Option(help=f"Comma-separated, of: {', '.join(CONFIGURATIONS)}."),
+    ] = ",".join(CONFIGURATIONS),
+    jobs: Annotated[
+        int, typer.Option(help="Worker processes sharing the scenarios (1: this one).", min=1)
+    ] = 2,
+    worker: Annotated[
+        str, typer.Option(hidden=True, help="Run these seeds here; JSON lines on stdout.")
+    ] = "",
 ) -> None:
     """Run the evaluation and write <out>/lidar_occlusion.json."""
-    results = anyio.run(_run, runs, seed, duration)
+    if not math.isfinite(duration):
+        raise typer.BadParameter(f"{duration}: give a number of seconds", param_hint="--duration")
+    names = _names(configurations)
+    # the stages' own lines (a plan rejected by the twin, given up on) are counted in the
+    # figures; only what goes wrong is printed
+    logging.basicConfig(level=logging.ERROR, format="%(levelname)s %(name)s: %(message)s")
+    if worker:
+        for entry_seed in (int(s) for s in worker.split(",")):
+            entry = anyio.run(run_scenario, entry_seed, duration, names)
+            sys.stdout.write(json.dumps(entry) + "\n")
+            sys.stdout.flush()
+        return
+    unavailable: dict[str, str] = {}
+    for n in names:
+        if CONFIGURATIONS[n][0] is not None:
+            try:
+                configuration(n)
+            except Unavailable as exc:
+                unavailable[n] = str(exc)
+    for n, why in unavailable.items():
+        print(f"note: not running {n}: {why}", file=sys.stderr, flush=True)
+    names = [n for n in names if n not in unavailable]
+    if not names:
+        raise EntryError(
+            "none of the configurations asked for can run in this build (see the notes "
+            f"above); choose from {', '.join(n for n in CONFIGURATIONS if n not in unavailable)}"
+        )
+    seeds = list(range(seed, seed + runs))
+    began = time.perf_counter()
+    if min(jobs, runs) > 1:
+        results = anyio.run(_workers, seeds, duration, names, min(jobs, runs))
+    else:
+        results = anyio.run(_in_process, seeds, duration, names)
+    wall = time.perf_counter() - began
+    for a, b in (("lookahead", "reference"), ("lookahead_twin", "reference_twin")):
+        if _same(results, a, b):
+            print(
+                f"note: every {a} run came out as its {b} run: does nodes.build select "
+                "the planner by PlanConfig.planner?",
+                file=sys.stderr,
+                flush=True,
+            )
     agg = aggregate(results)
     out.mkdir(parents=True, exist_ok=True)
-    doc = {"runs": runs, "seed": seed, "duration": duration, "aggregate": agg, "results": results}
+    doc = {
+        "runs": runs,
+        "seed": seed,
+        "duration": duration,
+        "configurations": names,
+        "unavailable": unavailable,
+        "jobs": min(jobs, runs),
+        "wall_s": round(wall, 1),
+        "aggregate": agg,
+        "results": results,
+    }
     (out / "lidar_occlusion.json").write_text(json.dumps(doc, indent=2) + "\n")
-    print(_table(agg), flush=True)
-    print(f"\n  written {out / 'lidar_occlusion.json'}", flush=True)
+    print(table(agg, unavailable), flush=True)
+    print(
+        f"\n  {wall:.0f} s with {min(jobs, runs)} job(s); written {out / 'lidar_occlusion.json'}",
+        flush=True,
+    )
 
 
 if __name__ == "__main__":

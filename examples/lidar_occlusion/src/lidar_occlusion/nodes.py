@@ -1,12 +1,18 @@
 """The five MAPLE-K stages of the lidar-occlusion loop as RAP nodes.
 
-- monitor, on data ``<robot>/scan``: writes ``laser_scan``; emits ``new-data``.
+- monitor, on data ``<robot>/scan`` and ``<robot>/odom``: writes ``laser_scan`` and,
+  when the robot sends odometry, with the pose of the scan's stamp, ``odometry`` and
+  ``obstacle_map`` (what the robot has seen: :mod:`lidar_occlusion.belief`); emits
+  ``new-data``.
 - analyse, on ``new-data``: reads ``laser_scan``, ``planned_lidar_mask`` and
   ``handling_anomaly``; writes ``lidar_mask`` and, on an anomaly, ``handling_anomaly``;
-  emits ``anomaly`` (with the mask).
-- plan, on ``anomaly`` (and ``plan-rejected``): reads ``lidar_mask``; writes
-  ``planned_lidar_mask`` and ``directions``; proposes the plan (``new-plan``).
-- legitimate, on ``new-plan``: emits ``verdict`` (and ``plan-rejected`` when it rejects).
+  emits ``anomaly`` (with the mask), else ``scan-mask``.
+- plan, on ``anomaly`` (and ``plan-rejected``; the lookahead planner on ``scan-mask``
+  too): reads ``lidar_mask`` (and ``odometry``); writes ``planned_lidar_mask``,
+  ``directions`` and ``planned_for``; proposes the plan (``new-plan``).
+- legitimate, on ``new-plan``: emits ``verdict`` (and ``plan-rejected`` when it rejects);
+  with ``LegitimacyConfig.twin`` it rolls the plan out on the twin from the robot's belief
+  (:mod:`lidar_occlusion.twin`).
 - execute, on an approving ``verdict`` that passes the gate: publishes the plan on data
   ``<robot>/spin_config``; writes ``handling_anomaly`` = false.
 
@@ -29,12 +35,16 @@ from typing import Any
 
 import msgspec
 import numpy as np
-from rap_schemas import LaserScan, LidarMask, PlanProposal, SpinPlan, Verdict
+from rap_schemas import LaserScan, LidarMask, Odometry, PlanProposal, SpinPlan, Verdict
 from rap_sdk import Context, Node
 from rap_sdk.gate import PLAN_REJECTED, ApprovalGate, legitimate, propose
+from rap_sdk.twin import ask
 
 from .analysis import AnalysisConfig, MaskWindow, analyse_scan, is_anomaly, to_message
+from .belief import MapConfig, ObstacleMap, belief_of, update
+from .lookahead import Lookahead
 from .planning import LegitimacyConfig, PlanConfig, check_plan, plan_for
+from .twin import LidarTwin, TwinConfig, pose_mismatch
 
 __all__ = [
     "ANOMALY",
@@ -59,9 +69,18 @@ log = logging.getLogger(__name__)
 
 NEW_DATA = "new-data"
 ANOMALY = "anomaly"
+PAIRING = 8
+"""Scans (or odometry) the monitor keeps while it waits for their partner."""
+SCAN_MASK = "scan-mask"
+"""Analysis's mask of a scan that raised no anomaly (the lookahead planner decides on
+every scan)."""
 
 # knowledge keys (the reference's names)
 LASER_SCAN = "laser_scan"
+# what the twin-backed Legitimate stage needs besides (RAP's own keys)
+ODOMETRY = "odometry"
+OBSTACLE_MAP = "obstacle_map"
+PLANNED_FOR = "planned_for"
 LIDAR_MASK = "lidar_mask"
 PLANNED_MASK = "planned_lidar_mask"
 DIRECTIONS = "directions"
@@ -119,10 +138,49 @@ def build(
     spin_topic = f"{robot}/spin_config"
 
     # -- monitor ---------------------------------------------------------------------------
+    scans: dict[int, LaserScan] = {}
+    """Scans waiting for the odometry of their stamp."""
+    poses: dict[int, Odometry] = {}
+    """Odometry waiting for the scan of its stamp (the two come on separate routes)."""
+    held: dict[str, Any] = {"map": None, "odometry": False}
+    """The obstacle map, and whether this robot sends odometry at all."""
+    map_cfg = MapConfig()
+
+    def keep(waiting: dict[int, Any], stamp: int, value: Any) -> None:
+        waiting[stamp] = value
+        while len(waiting) > PAIRING:
+            old = min(waiting)
+            del waiting[old]
+            log.debug("%s: %d had no partner (scan or odometry); dropped", mon.name, old)
+
+    async def go_on(ctx: Context, scan: LaserScan, odom: Odometry | None) -> None:
+        await ctx.kb.write(LASER_SCAN, scan)
+        if odom is not None:
+            seen: ObstacleMap = update(held["map"], scan, odom.pose, scan.stamp / 1e9, map_cfg)
+            held["map"] = seen
+            await ctx.kb.write(ODOMETRY, odom)
+            await ctx.kb.write(OBSTACLE_MAP, seen)
+        await ctx.emit(NEW_DATA)
+
     @mon.on_data(f"{robot}/scan")
     async def on_scan(ctx: Context, scan: LaserScan) -> None:
-        await ctx.kb.write(LASER_SCAN, scan)
-        await ctx.emit(NEW_DATA)
+        """A robot without odometry: each scan goes on at once. With odometry, a scan
+        goes on with the pose of its stamp (whichever of the two comes second), so that
+        what follows carries both: the obstacle map and the planners need the pose."""
+        odom = poses.pop(scan.stamp, None)
+        if odom is not None or not held["odometry"]:
+            await go_on(ctx, scan, odom)
+        else:
+            keep(scans, scan.stamp, scan)
+
+    @mon.on_data(f"{robot}/odom")
+    async def on_odom(ctx: Context, odom: Odometry) -> None:
+        held["odometry"] = True
+        scan = scans.pop(odom.stamp, None)
+        if scan is not None:
+            await go_on(ctx, scan, odom)
+        else:
+            keep(poses, odom.stamp, odom)
 
     # -- analyse ---------------------------------------------------------------------------
     raised_at: list[int | None] = [None]
@@ -159,6 +217,8 @@ def build(
             log.info("%s: anomaly: %d beams occluded; asking for a plan", ana.name, mask.sum())
             await ctx.kb.write(HANDLING, True)
             await ctx.emit(ANOMALY, msg)
+        else:  # for planners that decide on every scan (the lookahead)
+            await ctx.emit(SCAN_MASK, msg)
 
     @ana.on_snapshot
     def save_window() -> list[list[bool]]:
@@ -171,13 +231,57 @@ def build(
     # -- plan ------------------------------------------------------------------------------
     st = _PlanState()
 
+    ahead = Lookahead()
+
+    async def look_ahead(ctx: Context, mask: LidarMask, anomaly: bool) -> SpinPlan | None:
+        """The lookahead planner's decision at this scan (None: nothing to propose)."""
+        cfg: PlanConfig = ctx.config
+        odom = await ctx.kb.read(ODOMETRY, Odometry, default=None)
+        scan = await ctx.kb.read(LASER_SCAN, LaserScan, default=None)
+        if odom is None or scan is None:  # no pose yet: the reference, on an anomaly only
+            if not anomaly:
+                return None
+            return plan_for(np.asarray(mask.flags()), mask.angle_min, mask.angle_increment, cfg)
+        flags = np.asarray(mask.flags())
+        return ahead.step(
+            flags,
+            mask.angle_min,
+            mask.angle_increment,
+            odom.pose,
+            cfg.route,
+            scan.stamp / 1e9,
+            cfg,
+            anomaly=anomaly,
+            loop=cfg.loop_route,
+        )
+
+    @pla.on_event(SCAN_MASK, type=LidarMask)
+    async def every_scan(ctx: Context, mask: LidarMask) -> None:
+        cfg: PlanConfig = ctx.config
+        if cfg.planner != "lookahead":
+            return
+        spin = await look_ahead(ctx, mask, anomaly=False)
+        if spin is not None:
+            await offer(ctx, spin, mask)
+
     @pla.on_event(ANOMALY, type=LidarMask)
     async def make_plan(ctx: Context) -> None:
         cfg: PlanConfig = ctx.config
         mask = await ctx.kb.read(LIDAR_MASK, LidarMask)
-        spin = plan_for(np.asarray(mask.flags()), mask.angle_min, mask.angle_increment, cfg)
+        if cfg.planner == "lookahead":
+            spin = await look_ahead(ctx, mask, anomaly=True)
+            if spin is None:
+                return
+        else:
+            spin = plan_for(np.asarray(mask.flags()), mask.angle_min, mask.angle_increment, cfg)
+        await offer(ctx, spin, mask)
+
+    async def offer(ctx: Context, spin: SpinPlan, mask: LidarMask) -> None:
         st.previous = await ctx.kb.read(PLANNED_MASK, LidarMask, default=None)
         st.attempts = 0
+        odom = await ctx.kb.read(ODOMETRY, Odometry, default=None)
+        if odom is not None:  # what the plan was made for: the twin checks it still holds
+            await ctx.kb.write(PLANNED_FOR, odom)
         await ctx.kb.write(PLANNED_MASK, mask)
         await ctx.kb.write(DIRECTIONS, spin)
         st.current = (await propose(ctx, spin)).plan_uid
@@ -194,6 +298,9 @@ def build(
             st.current = (await propose(ctx, spin)).plan_uid
             return
         log.warning("%s: plan rejected (%s); giving up on it", pla.name, verdict.reason)
+        if cfg.planner == "lookahead":
+            odom = await ctx.kb.read(ODOMETRY, Odometry, default=None)
+            ahead.withdrawn(odom.stamp / 1e9 if odom is not None else 0.0, cfg)
         if st.previous is None:
             await ctx.kb.delete(PLANNED_MASK)
         else:
@@ -209,9 +316,42 @@ def build(
         st.attempts, st.previous, st.current = state.attempts, state.previous, state.current
 
     # -- legitimate ------------------------------------------------------------------------
+    twins: dict[TwinConfig, LidarTwin] = {}
+
+    async def on_twin(ctx: Context, plan: SpinPlan, cfg: LegitimacyConfig) -> str | None:
+        """The plan rolled out on the twin from the robot's belief: None, or why not."""
+        odom = await ctx.kb.read(ODOMETRY, Odometry, default=None)
+        scan = await ctx.kb.read(LASER_SCAN, LaserScan, default=None)
+        seen = await ctx.kb.read(OBSTACLE_MAP, ObstacleMap, default=None)
+        if odom is None or scan is None or seen is None:
+            return "belief: the twin has no pose, scan or obstacle map of the robot yet"
+        planned = await ctx.kb.read(PLANNED_FOR, Odometry, default=None)
+        if planned is not None:
+            made_for = planned.frame_id.split("/")[0]
+            off = pose_mismatch(planned.pose, odom.pose, robot, made_for, cfg.twin_config)
+            if off is not None:
+                return f"{off.code}: {off.message}"
+        mask = await ctx.kb.read(LIDAR_MASK, LidarMask, default=None)
+        b = belief_of(robot, odom, scan, seen, mask, cfg.route, loop_route=cfg.loop_route)
+        twin = twins.get(cfg.twin_config) or twins.setdefault(
+            cfg.twin_config, LidarTwin(cfg.twin_config)
+        )
+        report = await ask(twin, plan, b)
+        log.debug(
+            "%s: twin rolled the plan out over %.1f s in %.1f ms: %s",
+            leg.name,
+            report.horizon_s,
+            report.elapsed_s * 1e3,
+            report.metrics,
+        )
+        return report.verdict
+
     @legitimate(leg)
     async def check(ctx: Context, proposal: PlanProposal[SpinPlan]) -> str | None:
-        reason = check_plan(proposal, ctx.clock.time_ns(), ctx.config)
+        cfg: LegitimacyConfig = ctx.config
+        reason = check_plan(proposal, ctx.clock.time_ns(), cfg)
+        if reason is None and cfg.twin:
+            reason = await on_twin(ctx, proposal.plan, cfg)
         log.info("%s: plan %s", leg.name, "approved" if reason is None else f"rejected: {reason}")
         return reason
 

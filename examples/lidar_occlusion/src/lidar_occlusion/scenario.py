@@ -33,7 +33,7 @@ from sim_world.world import WorldSpec
 from .analysis import AnalysisConfig, ignore_band, signed_angles
 from .nodes import ANOMALY, build
 
-__all__ = ["Observer", "metrics", "run_in_process"]
+__all__ = ["Observer", "metrics", "rejection_codes", "run_in_process", "spin_seconds"]
 
 _any = typed_decoder(None)
 _OBSERVED = {
@@ -48,6 +48,8 @@ _OBSERVED = {
 class _Scan:
     t: float
     sent_ns: int
+    """When the scan was sent (its envelope's ts, UTC ns: one clock for every process of
+    this host, as the anomaly's and the plan's times)."""
     visible: np.ndarray[Any, np.dtype[np.bool_]]
     """Ground truth: occluded beams outside the ignored band."""
 
@@ -61,12 +63,17 @@ class Observer:
     scans: list[_Scan] = field(default_factory=list)
     by_cycle: dict[bytes, int] = field(default_factory=dict)
     anomalies: list[tuple[int, int, LidarMask]] = field(default_factory=list)
-    """(scan index, emitted at ns, mask)."""
+    """(scan index, emitted at (UTC ns, its envelope's ts), mask)."""
     proposed: int = 0
     approved: int = 0
     rejected: int = 0
     plans: list[tuple[int, int, SpinPlan]] = field(default_factory=list)
-    """(scan index of the cycle, received at ns, plan) for plans applied by the robot."""
+    """(scan index of the cycle, applied at (UTC ns), plan) for plans applied by the robot."""
+    plan_cycles: list[bytes] = field(default_factory=list)
+    """The cycle of each of ``plans`` (in lockstep in one process a plan can reach the
+    robot before its scan is recorded here: its index is then resolved at the end)."""
+    rejections: list[str] = field(default_factory=list)
+    """The reason of each verdict of the legitimate stage that rejected a plan."""
     stages: dict[bytes, list[StageTrace]] = field(default_factory=dict)
     _band: np.ndarray[Any, np.dtype[np.bool_]] | None = None
 
@@ -79,11 +86,12 @@ class Observer:
             angles = signed_angles(s.angle_min, s.angle_increment, s.beams)
             self._band = ignore_band(angles, self.cfg.ignore_from)
         self.by_cycle[env.uid] = len(self.scans)
-        self.scans.append(_Scan(ev.t, time.perf_counter_ns(), ev.occluded & ~self._band))
+        self.scans.append(_Scan(ev.t, env.ts, ev.occluded & ~self._band))
 
     def on_plan(self, robot: str, plan: SpinPlan, env: TypedEnvelope[SpinPlan]) -> None:
         idx = self.by_cycle.get(env.cycle or b"", -1)
-        self.plans.append((idx, time.perf_counter_ns(), plan))
+        self.plans.append((idx, time.time_ns(), plan))
+        self.plan_cycles.append(env.cycle or b"")
         if self.rerun is not None and idx >= 0:
             self.rerun.rec.log(
                 f"maplek/{robot}/cycles",
@@ -118,11 +126,13 @@ class Observer:
             name = sample.key.rsplit("/", 1)[-1]
             if name == ANOMALY:
                 idx = self.by_cycle.get(env.cycle or b"", -1)
-                self.anomalies.append((idx, time.perf_counter_ns(), body))
+                self.anomalies.append((idx, env.ts, body))
             elif name == NEW_PLAN:
                 self.proposed += 1
             elif name == VERDICT and body.approved:
                 self.approved += 1
+            elif name == VERDICT:
+                self.rejections.append(body.reason)
             elif name == PLAN_REJECTED:
                 self.rejected += 1
 
@@ -163,6 +173,32 @@ def _pcts(values: Sequence[float]) -> dict[str, float | None]:
     }
 
 
+def spin_seconds(applied: Sequence[tuple[float, SpinPlan]], end: float) -> float:
+    """Seconds of turning that the plans ``applied`` ((sim time, plan), in order)
+    commanded up to ``end``: each plan's commands once per period, from the time it
+    was applied until the next plan replaced it (cut off there)."""
+    total = 0.0
+    for k, (t0, plan) in enumerate(applied):
+        t1 = applied[k + 1][0] if k + 1 < len(applied) else end
+        spin = sum(c.duration for c in plan.commands)
+        if spin <= 0 or t1 <= t0:
+            continue
+        whole, rest = divmod(t1 - t0, plan.period)
+        total += whole * spin + min(spin, rest)
+    return total
+
+
+def rejection_codes(reasons: Sequence[str]) -> dict[str, int]:
+    """Rejections counted by the code their reason starts with (``"collision: ..."``
+    -> ``collision``; a reason without such a code, e.g. the plan checks', -> ``check``)."""
+    out: dict[str, int] = {}
+    for r in reasons:
+        head, sep, _ = r.partition(": ")
+        code = head if sep and head and " " not in head else "check"
+        out[code] = out.get(code, 0) + 1
+    return out
+
+
 def metrics(
     obs: Observer, sim: Simulation, *, tracker: CycleTracker | None = None
 ) -> dict[str, Any]:
@@ -192,6 +228,11 @@ def metrics(
     loop_ms = [(ns - scans[i].sent_ns) / 1e6 for i, ns, _ in obs.plans if i >= 0]
     emitted = {idx: ns for idx, ns, _ in obs.anomalies}
     to_robot_ms = [(ns - emitted[i]) / 1e6 for i, ns, _ in obs.plans if i in emitted]
+    applied = [
+        (scans[i].t, plan)
+        for c, (_, _, plan) in zip(obs.plan_cycles, obs.plans, strict=True)
+        if (i := obs.by_cycle.get(c, -1)) >= 0
+    ]
     robot = sim.robots[obs.robot]
     route = robot.spec.route
     reached = robot.nav.index
@@ -211,6 +252,8 @@ def metrics(
         "plans_approved": obs.approved,
         "plans_rejected": obs.rejected,
         "plans_executed": len(obs.plans),
+        "rejections": rejection_codes(obs.rejections),
+        "spin_s": round(spin_seconds(applied, sim.t), 3),
         "loop_latency_ms": {k: v for k, v in _pcts(loop_ms).items() if k in ("p50", "p99")},
         "anomaly_to_robot_ms": {k: v for k, v in _pcts(to_robot_ms).items() if k in ("p50", "p99")},
         "collisions": robot.collisions,
@@ -221,11 +264,13 @@ def metrics(
     full = violations = 0
     order = ["monitor", "analyse", "plan", "legitimate", "execute"]
     for recs in obs.stages.values():
-        start = {  # a call record is stamped at the start, an end record at the end
-            r.stage.value: r.ts if r.phase == "call" else r.ts - r.duration_ns
-            for r in recs
-            if r.stage is not None
-        }
+        start: dict[str, int] = {}
+        for r in recs:  # a stage's first call in the cycle (the monitor handles the scan,
+            if r.stage is None:  # then its odometry)
+                continue
+            # a call record is stamped at the start, an end record at the end
+            at = r.ts if r.phase == "call" else r.ts - r.duration_ns
+            start[r.stage.value] = min(at, start.get(r.stage.value, at))
         if all(st in start for st in order):
             full += 1  # one host, one clock: each stage started after the one before
             violations += [start[st] for st in order] != sorted(start[st] for st in order)

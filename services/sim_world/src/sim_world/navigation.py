@@ -16,7 +16,19 @@ import numpy.typing as npt
 from .kinematics import Pose2, wrap
 from .world import REACHED, RobotSpec
 
-__all__ = ["CANDIDATES", "LOOKAHEAD", "MARGIN", "REACHED", "STOP", "Navigator"]
+__all__ = [
+    "CANDIDATES",
+    "LOOKAHEAD",
+    "MARGIN",
+    "MEMORY_RANGE",
+    "REACHED",
+    "STOP",
+    "Navigator",
+    "fold_points",
+    "near_returns",
+]
+
+F = npt.NDArray[np.float64]
 
 LOOKAHEAD = 0.9
 """Metres ahead a heading must be clear of obstacles to be taken."""
@@ -26,6 +38,36 @@ STOP = 0.25
 """Free distance (m) along the chosen heading below which the robot turns in place."""
 CANDIDATES = 72
 """Headings considered, evenly around the robot (5 degrees apart)."""
+MEMORY_RANGE = 2.5
+"""Metres within which seen obstacle points are remembered for navigation."""
+_CAND = np.linspace(-math.pi, math.pi, CANDIDATES, endpoint=False)
+_CAND.flags.writeable = False
+
+
+def near_returns(pose: Pose2, angles: F, ranges: F, within: float = MEMORY_RANGE) -> F:
+    """World-frame points, shape (K, 2), of the returns closer than ``within`` m: what
+    navigation remembers of a scan taken at ``pose`` (``angles``: the beams' angles in
+    the robot's frame; ``inf`` ranges are no return)."""
+    world = pose.theta + angles
+    near = ranges < within
+    d = ranges[near]
+    return np.column_stack((pose.x + d * np.cos(world[near]), pose.y + d * np.sin(world[near])))
+
+
+def fold_points(pose: Pose2, ranges: F, points: F, angle_min: float, angle_increment: float) -> F:
+    """``ranges`` (a scan at ``pose``, beam ``i`` at ``angle_min + i * angle_increment``
+    in the robot's frame) with each world-frame point of ``points`` (K, 2) folded into
+    its nearest beam, where it is nearer than that beam's return: remembered obstacles
+    as navigation sees them. Returns a new array."""
+    if points.size == 0:
+        return ranges.copy()
+    dx, dy = points[:, 0] - pose.x, points[:, 1] - pose.y
+    dist = np.hypot(dx, dy)
+    rel = np.mod(np.arctan2(dy, dx) - pose.theta - angle_min, 2 * np.pi)
+    idx = np.rint(rel / angle_increment).astype(np.intp) % ranges.size
+    out = ranges.copy()
+    np.minimum.at(out, idx, dist)
+    return out
 
 
 @dataclass
@@ -54,7 +96,7 @@ class Navigator:
         self, pose: Pose2, angles: npt.NDArray[np.float64], ranges: npt.NDArray[np.float64]
     ) -> None:
         self._ranges = ranges
-        cand = np.linspace(-math.pi, math.pi, CANDIDATES, endpoint=False)
+        cand = _CAND
         hit = np.isfinite(ranges)
         r, a = ranges[hit], angles[hit]
         rel = a[None, :] - cand[:, None]

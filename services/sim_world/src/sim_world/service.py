@@ -220,10 +220,12 @@ class SimService:
         self.scans_published += 1
         if self.sync is not None:
             self.sync.expect(env.uid, key)
-        odom_key = keys.data(self.system, f"{ev.robot}/odom")
-        await rt.send(odom_key, self.sim.odometry(ev.robot), cycle=env.uid, cause=env.uid)
-        if self.on_scan is not None:
+        if self.on_scan is not None:  # seen before the loop can answer it (its odometry)
             self.on_scan(ev, env)
+        odom_key = keys.data(self.system, f"{ev.robot}/odom")
+        if self.sync is not None:  # the odometry is of the scan's cycle: its handlers too
+            self.sync.expect(env.uid, odom_key)
+        await rt.send(odom_key, self.sim.odometry(ev.robot), cycle=env.uid, cause=env.uid)
         if self.rerun is not None:
             self.rerun.scan(self.sim, ev)
         return env.uid

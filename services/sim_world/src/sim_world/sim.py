@@ -23,7 +23,7 @@ from rap_schemas import LaserScan, Odometry, Pose2D, SpinPlan, Twist, pack_range
 from .executor import PlanExecutor
 from .geometry import cast_rays, scene_of
 from .kinematics import DiffDrive, Pose2, wrap
-from .navigation import Navigator
+from .navigation import MEMORY_RANGE, Navigator, fold_points, near_returns
 from .occlusion import occlusion_mask
 from .physics import STATIC, static_space
 from .world import RobotSpec, WorldSpec, check_world
@@ -34,8 +34,6 @@ ROBOT = 2
 MASS = 3.3  # kg, a TurtleBot 4
 DRIVE_FORCE = 50.0  # N the wheels can push with
 DRIVE_TORQUE = 5.0  # N m
-MEMORY_RANGE = 2.5
-"""Metres within which seen obstacle points are remembered for navigation."""
 
 
 @dataclass
@@ -220,12 +218,7 @@ class Simulation:
         horizon = r.spec.obstacle_memory
         if horizon <= 0:
             return ranges
-        angles = pose.theta + self.beam_angles
-        near = ranges < MEMORY_RANGE
-        d = ranges[near]
-        pts = np.column_stack(
-            (pose.x + d * np.cos(angles[near]), pose.y + d * np.sin(angles[near]))
-        )
+        pts = near_returns(pose, self.beam_angles, ranges, MEMORY_RANGE)
         mem = r.memory
         while mem and mem[0][0] < self.t - horizon:
             mem.popleft()
@@ -236,14 +229,8 @@ class Simulation:
         old = np.concatenate(seen)
         if old.size == 0:
             return ranges
-        dx, dy = old[:, 0] - pose.x, old[:, 1] - pose.y
-        dist = np.hypot(dx, dy)
         lidar = self.world.lidar
-        rel = np.mod(np.arctan2(dy, dx) - pose.theta - lidar.angle_min, 2 * np.pi)
-        idx = np.rint(rel / lidar.angle_increment).astype(np.intp) % ranges.size
-        out = ranges.copy()
-        np.minimum.at(out, idx, dist)
-        return out
+        return fold_points(pose, ranges, old, lidar.angle_min, lidar.angle_increment)
 
     def odometry(self, name: str) -> Odometry:
         r = self.robots[name]
