@@ -72,7 +72,7 @@ async def _bed(tmp_path: Path) -> AsyncIterator[Bed]:
     text = model.read_text()
     for old, new in (
         ("    writes: [lidar_mask, handling_anomaly]\n", "    models: {occlusion: write}\n"),
-        ("    writes: [laser_scan]\n", "    models: {occlusion: read}\n"),
+        ("    writes: [laser_scan, odometry, obstacle_map]\n", "    models: {occlusion: read}\n"),
     ):
         assert text.count(old) == 1
         text = text.replace(old, old + new)

@@ -12,7 +12,7 @@ import numpy.typing as npt
 import pytest
 from knowledge.app import open_service
 from knowledge.config import KnowledgeConfig
-from lidar_occlusion.nodes import LIDAR_MASK, PLANNED_FOR, build
+from lidar_occlusion.nodes import LIDAR_MASK, PLANNED_FOR, MonitorConfig, build
 from lidar_occlusion.planning import LegitimacyConfig
 from rap_schemas import (
     LaserScan,
@@ -81,7 +81,9 @@ def _spin(*commands: tuple[float, float], period: float = 8.0) -> SpinPlan:
 
 async def test_the_twin_rejects_every_planted_unsafe_plan() -> None:
     loop = build(
-        "tb1", legitimacy=LegitimacyConfig(twin=True, route=[(8.0, 4.0)], loop_route=False)
+        "tb1",
+        monitoring=MonitorConfig(belief=True),
+        legitimacy=LegitimacyConfig(twin=True, route=[(8.0, 4.0)], loop_route=False),
     )
     async with Harness(system=SYSTEM) as h:
         await h.hold(open_service(KnowledgeConfig(system=SYSTEM), fabric=h.fabric))

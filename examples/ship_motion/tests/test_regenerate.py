@@ -10,6 +10,8 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parents[1]
 KEPT = ("design", "src", "tests", "model.yaml", "pyproject.toml", "README.md", "deploy")
+WHEELS = "deploy/wheels/"
+"""Where the image's wheels go: git-ignored (.gitignore), so not in a fresh clone."""
 
 
 def _rap(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
@@ -28,7 +30,9 @@ def _files(root: Path) -> dict[str, bytes]:
         str(p.relative_to(root)): p.read_bytes()
         for name in KEPT
         for p in ([root / name] if (root / name).is_file() else (root / name).rglob("*"))
-        if p.is_file() and "__pycache__" not in p.parts
+        if p.is_file()
+        and "__pycache__" not in p.parts
+        and not p.relative_to(root).as_posix().startswith(WHEELS)
     }
 
 

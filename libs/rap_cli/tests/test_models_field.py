@@ -29,7 +29,10 @@ def _lidar(tmp_path: Path, *, tls: bool = True) -> Path:
     text = LIDAR.read_text()
     for old, new in (
         ("    writes: [lidar_mask, handling_anomaly]\n", "    models: {occlusion: write}\n"),
-        ("    writes: [laser_scan]\n", "    models: {occlusion: read, detector/yolo: read}\n"),
+        (
+            "    writes: [laser_scan, odometry, obstacle_map]\n",
+            "    models: {occlusion: read, detector/yolo: read}\n",
+        ),
     ):
         assert text.count(old) == 1
         text = text.replace(old, old + new)

@@ -44,7 +44,7 @@ from rap_sdk.entry import EntryError, run_cli
 from sim_world.occlusion import occlusion_mask
 from sim_world.world import WorldSpec
 
-from .nodes import build
+from .nodes import MonitorConfig, build
 from .planning import LegitimacyConfig, PlanConfig
 from .scenario import run_in_process
 
@@ -190,7 +190,8 @@ def configuration(name: str) -> tuple[PlanConfig, LegitimacyConfig]:
 
 def _nodes(name: str, robot: str) -> list[Node]:
     planning, legitimacy = configuration(name)
-    return build(robot, planning=planning, legitimacy=legitimacy).nodes
+    monitoring = MonitorConfig(belief=legitimacy.twin)  # the twin reads the obstacle map
+    return build(robot, monitoring=monitoring, planning=planning, legitimacy=legitimacy).nodes
 
 
 def twin_rejections(codes: dict[str, int]) -> int:

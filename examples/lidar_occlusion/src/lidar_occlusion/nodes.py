@@ -56,6 +56,7 @@ __all__ = [
     "PLANNED_MASK",
     "ExecuteConfig",
     "Loop",
+    "MonitorConfig",
     "analyse",
     "build",
     "execute",
@@ -85,6 +86,13 @@ LIDAR_MASK = "lidar_mask"
 PLANNED_MASK = "planned_lidar_mask"
 DIRECTIONS = "directions"
 HANDLING = "handling_anomaly"
+
+
+class MonitorConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    belief: bool = False
+    """Keep the obstacle map (:mod:`lidar_occlusion.belief`) in knowledge, for the
+    twin-backed Legitimate stage (``LegitimacyConfig.twin``): 15-60 kB a scan, so off
+    unless a twin reads it."""
 
 
 class ExecuteConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
@@ -121,13 +129,14 @@ def build(
     robot: str = "tb1",
     *,
     prefix: str = "",
+    monitoring: MonitorConfig | None = None,
     analysis: AnalysisConfig | None = None,
     planning: PlanConfig | None = None,
     legitimacy: LegitimacyConfig | None = None,
     execution: ExecuteConfig | None = None,
 ) -> Loop:
     """A fresh set of the five nodes for ``robot`` (names start with ``prefix``)."""
-    mon = Node(f"{prefix}monitor", stage="monitor")
+    mon = Node(f"{prefix}monitor", stage="monitor", config=monitoring or MonitorConfig())
     ana = Node(f"{prefix}analysis", stage="analyse", config=analysis or AnalysisConfig())
     pla = Node(f"{prefix}planner", stage="plan", config=planning or PlanConfig())
     leg = Node(f"{prefix}legitimate", stage="legitimate", config=legitimacy or LegitimacyConfig())
@@ -156,10 +165,13 @@ def build(
     async def go_on(ctx: Context, scan: LaserScan, odom: Odometry | None) -> None:
         await ctx.kb.write(LASER_SCAN, scan)
         if odom is not None:
-            seen: ObstacleMap = update(held["map"], scan, odom.pose, scan.stamp / 1e9, map_cfg)
-            held["map"] = seen
             await ctx.kb.write(ODOMETRY, odom)
-            await ctx.kb.write(OBSTACLE_MAP, seen)
+            cfg: MonitorConfig = ctx.config
+            if cfg.belief:
+                pose, t = odom.pose, scan.stamp / 1e9
+                seen: ObstacleMap = update(held["map"], scan, pose, t, map_cfg)
+                held["map"] = seen
+                await ctx.kb.write(OBSTACLE_MAP, seen)
         await ctx.emit(NEW_DATA)
 
     @mon.on_data(f"{robot}/scan")

@@ -587,7 +587,7 @@ class Translator:
                 sim_ns=sim,
             )
         ]
-        if isinstance(body, LidarMask):
+        if isinstance(body, LidarMask) and name == "anomaly":  # not a scan's plain mask
             out.extend(self._mask(env, body, cycle, sim))
         return out
 
