@@ -14,28 +14,22 @@ certificate cannot link at all.
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
-from collections.abc import AsyncIterator
-from contextlib import asynccontextmanager
+from contextlib import AbstractAsyncContextManager
 from pathlib import Path
 
 import anyio
 import pytest
-from rap_cli.certs_cli import write_certs
-from rap_cli.deploy import TlsFiles, client_config, render_zenoh, router_config
-from rap_cli.testing import model_copy
-from rap_schemas import keys, load_plan
+from rap_cli.deploy import client_config
+from rap_cli.testing import SecuredRouter, model_copy, secured_router
+from rap_schemas import keys
 from rap_sdk.errors import FabricError
 from rap_sdk.fabric import (
     QueryRequest,
     Reply,
     ZenohConfig,
     ZenohFabric,
-    free_port,
     node_overlay,
 )
-from rap_sdk.testing import OutputLines, stop_process
 
 pytestmark = [pytest.mark.anyio, pytest.mark.zenoh, pytest.mark.timeout(120)]
 
@@ -50,48 +44,8 @@ MODEL_STORE = keys.kb(S, "_models/occlusion")
 KB_ALIVE = keys.alive(S, "knowledge")
 
 
-class Bed:
-    def __init__(self, certs: Path, endpoint: str, log: OutputLines) -> None:
-        self.certs, self.endpoint, self.log = certs, endpoint, log
-
-    def session(self, identity: str) -> ZenohFabric:
-        """A RAP process's session as ``identity`` (RAP_AS), as rap up configures it."""
-        text = json.dumps(client_config(self.endpoint, secure=True))
-        env = {"RAP_AS": identity, "RAP_CERTS": str(self.certs)}
-        return ZenohFabric(node_overlay(ZenohConfig(), text, env=env))
-
-    async def refusal(self, identity: str, what: str, key: str) -> str:
-        """The router's log line refusing ``identity`` ``what`` on ``key``."""
-        at = await self.log.line(f"refused: {identity} may not {what} (ingress) on {key}")
-        return self.log.lines[at]
-
-
-@asynccontextmanager
-async def _bed(tmp_path: Path) -> AsyncIterator[Bed]:
-    model = model_copy(MODEL, tmp_path)
-    model.write_text(model.read_text() + "\nfabric:\n  tls: true\n  operators: [ops]\n")
-    plan = load_plan(model).plan
-    certs = tmp_path / "certs"
-    write_certs(plan, certs)
-    endpoint = f"tls/127.0.0.1:{free_port()}"
-    conf = router_config(plan, "edge", local=[endpoint], listen=[], tls=TlsFiles.of(certs, "edge"))
-    assert conf["access_control"]["default_permission"] == "deny"
-    path = tmp_path / "router.json5"
-    path.write_text(render_zenoh(conf, title="test router"))
-    async with (
-        await anyio.open_process(
-            [sys.executable, "-m", "rap_cli.router", "--config", str(path)],
-            stderr=subprocess.STDOUT,
-        ) as proc,
-        anyio.create_task_group() as tg,
-    ):
-        log = OutputLines(proc, timeout=10)
-        tg.start_soon(log.pump)
-        try:
-            await log.line("listening on")
-            yield Bed(certs, endpoint, log)
-        finally:
-            await stop_process(proc)
+def _bed(tmp_path: Path) -> AbstractAsyncContextManager[SecuredRouter]:
+    return secured_router(model_copy(MODEL, tmp_path), tmp_path)
 
 
 async def _arrives(sub: object, fabric: ZenohFabric, key: str, payload: bytes) -> bool:

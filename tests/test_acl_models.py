@@ -15,8 +15,6 @@ from __future__ import annotations
 
 import json
 import logging
-import subprocess
-import sys
 from collections.abc import AsyncIterator
 from contextlib import AsyncExitStack, asynccontextmanager
 from pathlib import Path
@@ -26,14 +24,11 @@ import pytest
 from knowledge.app import open_service
 from knowledge.config import KnowledgeConfig
 from rap_cli.acl import model_grants
-from rap_cli.certs_cli import write_certs
-from rap_cli.deploy import TlsFiles, client_config, render_zenoh, router_config
-from rap_cli.testing import model_copy
-from rap_schemas import keys, load_plan
-from rap_sdk.fabric import ZenohConfig, ZenohFabric, free_port, node_overlay
+from rap_cli.testing import SecuredRouter, model_copy, secured_router
+from rap_schemas import keys
+from rap_sdk.fabric import ZenohFabric
 from rap_sdk.identity import load_signer, load_verifier
 from rap_sdk.knowledge import KnowledgeClient, KnowledgeError
-from rap_sdk.testing import OutputLines, stop_process
 
 pytestmark = [pytest.mark.anyio, pytest.mark.zenoh, pytest.mark.timeout(120)]
 
@@ -44,15 +39,12 @@ OCCLUSION = keys.kb(S, "_models/occlusion")
 
 
 class Bed:
-    def __init__(self, certs: Path, endpoint: str, log: OutputLines, stack: AsyncExitStack) -> None:
-        self.certs, self.endpoint, self.log, self.stack = certs, endpoint, log, stack
+    def __init__(self, router: SecuredRouter, stack: AsyncExitStack) -> None:
+        self.router, self.certs, self.log, self.stack = router, router.certs, router.log, stack
 
     async def session(self, identity: str) -> ZenohFabric:
-        """A RAP process's session as ``identity`` (RAP_AS), as rap up configures it."""
-        text = json.dumps(client_config(self.endpoint, secure=True))
-        env = {"RAP_AS": identity, "RAP_CERTS": str(self.certs)}
-        fabric = ZenohFabric(node_overlay(ZenohConfig(), text, env=env))
-        return await self.stack.enter_async_context(fabric)
+        """A RAP process's session as ``identity``, open until the bed closes."""
+        return await self.stack.enter_async_context(self.router.session(identity))
 
     async def client(self, identity: str) -> KnowledgeClient:
         """A knowledge client of ``identity``'s session, signing as it."""
@@ -76,41 +68,19 @@ async def _bed(tmp_path: Path) -> AsyncIterator[Bed]:
     ):
         assert text.count(old) == 1
         text = text.replace(old, old + new)
-    model.write_text(text + "\nfabric:\n  tls: true\n  operators: [ops]\n")
-    plan = load_plan(model).plan
-    certs = tmp_path / "certs"
-    write_certs(plan, certs)
-    endpoint = f"tls/127.0.0.1:{free_port()}"
-    conf = router_config(plan, "edge", local=[endpoint], listen=[], tls=TlsFiles.of(certs, "edge"))
-    assert conf["access_control"]["default_permission"] == "deny"
-    path = tmp_path / "router.json5"
-    path.write_text(render_zenoh(conf, title="test router"))
-    async with (
-        await anyio.open_process(
-            [sys.executable, "-m", "rap_cli.router", "--config", str(path)],
-            stderr=subprocess.STDOUT,
-        ) as proc,
-        anyio.create_task_group() as tg,
-        AsyncExitStack() as stack,
-    ):
-        log = OutputLines(proc, timeout=10)
-        tg.start_soon(log.pump)
-        try:
-            await log.line("listening on")
-            bed = Bed(certs, endpoint, log, stack)
-            # the knowledge service as rap up runs it: its identity, the CA, the grants
-            config = KnowledgeConfig(system=S, model_grants=model_grants(plan))  # type: ignore[arg-type]
-            await stack.enter_async_context(
-                open_service(
-                    config,
-                    fabric=await bed.session("edge.knowledge"),
-                    verifier=load_verifier(certs),
-                )
+    model.write_text(text)
+    async with secured_router(model, tmp_path) as router, AsyncExitStack() as stack:
+        bed = Bed(router, stack)
+        # the knowledge service as rap up runs it: its identity, the CA, the grants
+        config = KnowledgeConfig(system=S, model_grants=model_grants(router.plan))  # type: ignore[arg-type]
+        await stack.enter_async_context(
+            open_service(
+                config,
+                fabric=await bed.session("edge.knowledge"),
+                verifier=load_verifier(router.certs),
             )
-            yield bed
-        finally:
-            await stack.aclose()
-            await stop_process(proc)
+        )
+        yield bed
 
 
 async def _answered(kb: KnowledgeClient) -> None:

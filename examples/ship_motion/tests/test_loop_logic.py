@@ -9,13 +9,14 @@ from rap_sdk.twin import TwinKind, ask
 
 from ship_motion.learn import bad_model, train_onnx
 from ship_motion.loop import (
-    Collector,
     Detector,
     HashMismatch,
     ReplayBelief,
     ReplayTwin,
     ShipPredictors,
     judge,
+    training_due,
+    training_window,
 )
 from ship_motion.physics import History
 from ship_motion.predict import ModelError, model_hash
@@ -75,14 +76,17 @@ def test_the_detector_needs_consecutive_scored_steps_of_one_model() -> None:
     assert not d.step(9.0, 5, 0)  # no model served: nothing to judge
 
 
-def test_the_collector_waits_for_its_window_and_retries_with_more() -> None:
-    c = Collector(collect_s=720.0, holdout_s=120.0)
-    assert not c.due(10_000.0)
-    c.start(650.0)
-    assert (c.due(1369.0), c.due(1370.0)) == (False, True)
-    assert c.window(1370.0) == (650.0, 1250.0)
-    c.attempts = 1
-    assert (c.due(1370.0), c.due(2090.0)) == (False, True)
+def test_plan_waits_for_its_window_and_retries_with_more() -> None:
+    assert (training_due(650.0, 0, 1369.0, 720.0), training_due(650.0, 0, 1370.0, 720.0)) == (
+        False,
+        True,
+    )
+    assert training_window(650.0, 1370.0, 120.0) == (650.0, 1250.0)
+    # after a rejected candidate: another collect_s of data
+    assert (training_due(650.0, 1, 1370.0, 720.0), training_due(650.0, 1, 2090.0, 720.0)) == (
+        False,
+        True,
+    )
 
 
 def test_legitimate_rejects_every_planted_candidate_and_approves_a_good_one(

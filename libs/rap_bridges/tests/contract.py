@@ -40,7 +40,7 @@ from rap_bridges.tcp import HEADER_ACK, HEADER_SENDER, HEADER_SEQ, encode_frame,
 from rap_schemas import Envelope, Message, keys
 from rap_sdk import InboxPolicy, MemoryFabric, Overflow, Sealer
 from rap_sdk.fabric import Fabric, free_port
-from rap_sdk.testing import require_binary, stop_process
+from rap_sdk.testing import accepting, require_binary, stop_process
 
 PROTOCOLS = KNOWN_PROTOCOLS
 """Every protocol with a bridge: the contract runs against each."""
@@ -192,17 +192,10 @@ class MosquittoServer:
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
         )
-        with anyio.fail_after(10):
-            while True:
-                try:
-                    stream = await anyio.connect_tcp("127.0.0.1", self.port)
-                except OSError:
-                    if self._proc.returncode is not None:
-                        raise RuntimeError("mosquitto exited at start") from None
-                    await anyio.sleep(0.02)
-                    continue
-                await stream.aclose()
-                return
+        proc = self._proc
+        await accepting(
+            self.port, lambda: None if proc.returncode is None else "mosquitto exited at start"
+        )
 
     async def stop(self) -> None:
         proc, self._proc = self._proc, None

@@ -32,7 +32,7 @@ from aio_pika.abc import AbstractIncomingMessage
 from anyio.abc import TaskGroup
 from rap_bridges import BridgeSpec, Direction, Frame
 from rap_sdk.fabric import free_port
-from rap_sdk.testing import require_binary
+from rap_sdk.testing import accepting, require_binary
 
 from libs.rap_bridges.tests.contract import _Received
 from libs.rap_sdk.tests.certs_support import make_certs
@@ -150,17 +150,12 @@ class RabbitNode:
         self.app_running = True
 
     async def _wait_listening(self, port: int) -> None:
-        while True:
-            try:
-                stream = await anyio.connect_tcp("127.0.0.1", port)
-            except OSError:
-                if self._proc is None or self._proc.poll() is not None:
-                    tail = self.log_tail()
-                    raise RuntimeError(f"rabbitmq-server exited at start: {tail}") from None
-                await anyio.sleep(0.05)
-                continue
-            await stream.aclose()
-            return
+        def exited() -> str | None:
+            if self._proc is None or self._proc.poll() is not None:
+                return f"rabbitmq-server exited at start: {self.log_tail()}"
+            return None
+
+        await accepting(port, exited, timeout=None)  # boot() sets the deadline
 
     def log_tail(self, lines: int = 20) -> str:
         if self.folder is None:

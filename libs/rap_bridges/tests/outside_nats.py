@@ -27,7 +27,7 @@ from nats.aio.client import Client
 from nats.js.api import AckPolicy, ConsumerConfig, DeliverPolicy, StorageType
 from rap_bridges import BridgeSpec, Direction, Frame
 from rap_sdk.fabric import free_port
-from rap_sdk.testing import require_binary, stop_process
+from rap_sdk.testing import accepting, require_binary, stop_process
 
 from libs.rap_bridges.tests.contract import _Received
 
@@ -90,19 +90,11 @@ class NatsServer:
         self._proc = await anyio.open_process(
             self.args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
         )
-        with anyio.fail_after(10):
-            while True:
-                try:
-                    stream = await anyio.connect_tcp("127.0.0.1", self.port)
-                except OSError:
-                    if self._proc.returncode is not None:
-                        raise RuntimeError(
-                            f"nats-server exited at start; see {self.directory}/nats-server.log"
-                        ) from None
-                    await anyio.sleep(0.02)
-                    continue
-                await stream.aclose()
-                return
+        proc, log = self._proc, f"{self.directory}/nats-server.log"
+        await accepting(
+            self.port,
+            lambda: None if proc.returncode is None else f"nats-server exited at start; see {log}",
+        )
 
     async def stop(self) -> None:
         proc, self._proc = self._proc, None

@@ -14,7 +14,7 @@ from pathlib import Path
 import anyio
 from anyio.abc import Process
 from anyio.streams.text import TextReceiveStream
-from rap_sdk.testing import free_port, require_binary
+from rap_sdk.testing import accepting, free_port, require_binary
 
 
 class RedisServer:
@@ -115,21 +115,15 @@ class MemcachedServer:
             stdout=subprocess.DEVNULL,
             stderr=subprocess.PIPE,
         )
-        with anyio.fail_after(10):  # it says nothing when ready: wait until it accepts
-            while True:
-                if self._proc.returncode is not None:
-                    err = b""
-                    if self._proc.stderr is not None:
-                        with contextlib.suppress(anyio.EndOfStream):
-                            err = await self._proc.stderr.receive()
-                    raise RuntimeError(f"memcached did not start: {err.decode(errors='replace')}")
-                try:
-                    stream = await anyio.connect_tcp("127.0.0.1", self.port)
-                except OSError:
-                    await anyio.sleep(0.02)
-                    continue
-                await stream.aclose()
-                return
+        proc = self._proc  # it says nothing when ready: wait until it accepts
+        try:
+            await accepting(self.port, lambda: None if proc.returncode is None else "exited")
+        except RuntimeError:
+            err = b""
+            if proc.stderr is not None:
+                with contextlib.suppress(anyio.EndOfStream):
+                    err = await proc.stderr.receive()
+            raise RuntimeError(f"memcached did not start: {err.decode(errors='replace')}") from None
 
     async def stop(self) -> None:
         if self._proc is not None:

@@ -52,7 +52,6 @@ __all__ = [
     "CONFIGURATIONS",
     "MODES",
     "TWIN_CODES",
-    "Unavailable",
     "aggregate",
     "configuration",
     "run_scenario",
@@ -161,15 +160,10 @@ GOAL_ROUTES = 0.95
 """The goal: no collision, and routes completed within 5 % of the no-loop run."""
 
 
-class Unavailable(LookupError):
-    """A configuration this build cannot run (what it lacks is in the message)."""
-
-
 def configuration(name: str) -> tuple[PlanConfig, LegitimacyConfig]:
     """The loop's settings in configuration ``name`` (one of :data:`CONFIGURATIONS`
     but ``no_loop``), for the scenarios' route: ``build(robot, planning=...,
-    legitimacy=...)`` makes its nodes.
-    Raises :class:`Unavailable` when this build has no twin-backed Legitimate stage."""
+    legitimacy=...)`` makes its nodes."""
     if name not in CONFIGURATIONS or CONFIGURATIONS[name][0] is None:
         loops = ", ".join(n for n, (p, _) in CONFIGURATIONS.items() if p is not None)
         raise ValueError(f"no loop configuration {name!r}: choose from {loops}")
@@ -178,14 +172,7 @@ def configuration(name: str) -> tuple[PlanConfig, LegitimacyConfig]:
     planning = msgspec.convert({"planner": planner, **route}, PlanConfig)
     if not twin:
         return planning, LegitimacyConfig()
-    try:
-        legitimacy = msgspec.convert({"twin": True, **route}, LegitimacyConfig)
-    except msgspec.ValidationError as exc:
-        raise Unavailable(
-            f"configuration {name!r} needs the twin-backed Legitimate stage "
-            f"(LegitimacyConfig.twin), which this build lacks ({exc})"
-        ) from None
-    return planning, legitimacy
+    return planning, msgspec.convert({"twin": True, **route}, LegitimacyConfig)
 
 
 def _nodes(name: str, robot: str) -> list[Node]:
@@ -324,7 +311,7 @@ def _detection(runs: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
-def table(agg: dict[str, Any], unavailable: dict[str, str] | None = None) -> str:
+def table(agg: dict[str, Any]) -> str:
     """The aggregate for a person: detection, then the configurations side by side."""
     lines = [
         "",
@@ -376,8 +363,6 @@ def table(agg: dict[str, Any], unavailable: dict[str, str] | None = None) -> str
             for n in names
         )
         lines.append(f"  {mode + ' (' + str(agg['by_mode'][mode]['runs']) + ')':26}{cells}")
-    for name, why in (unavailable or {}).items():
-        lines.append(f"  not run: {LABELS[name]}: {why}")
     return "\n".join(lines)
 
 
@@ -449,22 +434,6 @@ async def _workers(
     return [got[s] for s in seeds]
 
 
-def _same(results: list[dict[str, Any]], a: str, b: str) -> bool:
-    """Did configurations ``a`` and ``b`` give the same figures in every run, with some
-    spinning (a selection that was not wired)?"""
-    keys = ("spin_s", "plans_proposed", "waypoints_reached", "collisions", "distance_m")
-    pairs = [
-        (r["configurations"][a], r["configurations"][b])
-        for r in results
-        if a in r["configurations"] and b in r["configurations"]
-    ]
-    return (
-        bool(pairs)
-        and any(x.get("spin_s", 0.0) > 0 for x, _ in pairs)
-        and all(all(x.get(k) == y.get(k) for k in keys) for x, y in pairs)
-    )
-
-
 def _names(text: str) -> list[str]:
     names = [n.strip() for n in text.split(",") if n.strip()]
     bad = [n for n in names if n not in CONFIGURATIONS]
@@ -506,21 +475,6 @@ def main(
             sys.stdout.write(json.dumps(entry) + "\n")
             sys.stdout.flush()
         return
-    unavailable: dict[str, str] = {}
-    for n in names:
-        if CONFIGURATIONS[n][0] is not None:
-            try:
-                configuration(n)
-            except Unavailable as exc:
-                unavailable[n] = str(exc)
-    for n, why in unavailable.items():
-        print(f"note: not running {n}: {why}", file=sys.stderr, flush=True)
-    names = [n for n in names if n not in unavailable]
-    if not names:
-        raise EntryError(
-            "none of the configurations asked for can run in this build (see the notes "
-            f"above); choose from {', '.join(n for n in CONFIGURATIONS if n not in unavailable)}"
-        )
     seeds = list(range(seed, seed + runs))
     began = time.perf_counter()
     if min(jobs, runs) > 1:
@@ -528,14 +482,6 @@ def main(
     else:
         results = anyio.run(_in_process, seeds, duration, names)
     wall = time.perf_counter() - began
-    for a, b in (("lookahead", "reference"), ("lookahead_twin", "reference_twin")):
-        if _same(results, a, b):
-            print(
-                f"note: every {a} run came out as its {b} run: does nodes.build select "
-                "the planner by PlanConfig.planner?",
-                file=sys.stderr,
-                flush=True,
-            )
     agg = aggregate(results)
     out.mkdir(parents=True, exist_ok=True)
     doc = {
@@ -543,14 +489,13 @@ def main(
         "seed": seed,
         "duration": duration,
         "configurations": names,
-        "unavailable": unavailable,
         "jobs": min(jobs, runs),
         "wall_s": round(wall, 1),
         "aggregate": agg,
         "results": results,
     }
     (out / "lidar_occlusion.json").write_text(json.dumps(doc, indent=2) + "\n")
-    print(table(agg, unavailable), flush=True)
+    print(table(agg), flush=True)
     print(
         f"\n  {wall:.0f} s with {min(jobs, runs)} job(s); written {out / 'lidar_occlusion.json'}",
         flush=True,

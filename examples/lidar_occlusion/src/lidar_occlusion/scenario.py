@@ -69,9 +69,6 @@ class Observer:
     rejected: int = 0
     plans: list[tuple[int, int, SpinPlan]] = field(default_factory=list)
     """(scan index of the cycle, applied at (UTC ns), plan) for plans applied by the robot."""
-    plan_cycles: list[bytes] = field(default_factory=list)
-    """The cycle of each of ``plans`` (in lockstep in one process a plan can reach the
-    robot before its scan is recorded here: its index is then resolved at the end)."""
     rejections: list[str] = field(default_factory=list)
     """The reason of each verdict of the legitimate stage that rejected a plan."""
     stages: dict[bytes, list[StageTrace]] = field(default_factory=dict)
@@ -91,7 +88,6 @@ class Observer:
     def on_plan(self, robot: str, plan: SpinPlan, env: TypedEnvelope[SpinPlan]) -> None:
         idx = self.by_cycle.get(env.cycle or b"", -1)
         self.plans.append((idx, time.time_ns(), plan))
-        self.plan_cycles.append(env.cycle or b"")
         if self.rerun is not None and idx >= 0:
             self.rerun.rec.log(
                 f"maplek/{robot}/cycles",
@@ -228,11 +224,7 @@ def metrics(
     loop_ms = [(ns - scans[i].sent_ns) / 1e6 for i, ns, _ in obs.plans if i >= 0]
     emitted = {idx: ns for idx, ns, _ in obs.anomalies}
     to_robot_ms = [(ns - emitted[i]) / 1e6 for i, ns, _ in obs.plans if i in emitted]
-    applied = [
-        (scans[i].t, plan)
-        for c, (_, _, plan) in zip(obs.plan_cycles, obs.plans, strict=True)
-        if (i := obs.by_cycle.get(c, -1)) >= 0
-    ]
+    applied = [(scans[i].t, plan) for i, _, plan in obs.plans if i >= 0]
     robot = sim.robots[obs.robot]
     route = robot.spec.route
     reached = robot.nav.index

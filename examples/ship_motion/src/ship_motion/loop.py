@@ -6,7 +6,8 @@ they stay small, and this module is tested on its own.
 - :class:`ShipPredictors`: the managed system's predictors (kinematic, dynamic, and the
   data-driven model in use), their scores, and the display's safe state.
 - :class:`Detector`: Analyse's rule (score above the threshold for N consecutive steps).
-- :class:`Collector`: Plan's wait for enough post-anomaly history, and its training window.
+- :func:`training_due`, :func:`training_window`: Plan's wait for enough post-anomaly
+  history, and what it trains on.
 - :func:`judge`: Legitimate's replay of recorded history through candidate and running model.
 """
 
@@ -34,7 +35,6 @@ from .predict import (
 
 __all__ = [
     "MODEL_NAME",
-    "Collector",
     "Detector",
     "HashMismatch",
     "Judgement",
@@ -45,6 +45,8 @@ __all__ = [
     "history_of",
     "judge",
     "train_candidate",
+    "training_due",
+    "training_window",
 ]
 
 MODEL_NAME = "ship_motion"
@@ -177,31 +179,16 @@ class Detector:
         return self.run >= self.steps
 
 
-@dataclass
-class Collector:
+def training_due(anomaly_t: float, attempts: int, latest_t: float, collect_s: float) -> bool:
     """Plan's wait: after an anomaly at ``anomaly_t``, train once ``collect_s`` seconds of
-    history are in; keep the last ``holdout_s`` of them for Legitimate only."""
+    history are in (once more for each candidate Legitimate rejected: ``attempts``)."""
+    return latest_t >= anomaly_t + collect_s * (1 + attempts)
 
-    collect_s: float = 420.0
-    holdout_s: float = 120.0
-    anomaly_t: float | None = None
-    attempts: int = 0
 
-    def start(self, anomaly_t: float) -> None:
-        self.anomaly_t, self.attempts = anomaly_t, 0
-
-    def due(self, latest_t: float) -> bool:
-        if self.anomaly_t is None:
-            return False
-        return latest_t >= self.anomaly_t + self.collect_s * (1 + self.attempts)
-
-    def window(self, latest_t: float) -> tuple[float, float]:
-        """The training window: from the anomaly to the holdout."""
-        assert self.anomaly_t is not None
-        return self.anomaly_t, latest_t - self.holdout_s
-
-    def done(self) -> None:
-        self.anomaly_t = None
+def training_window(anomaly_t: float, latest_t: float, holdout_s: float) -> tuple[float, float]:
+    """From the anomaly to ``holdout_s`` before the latest sample: the rest is kept for
+    Legitimate's replay only."""
+    return anomaly_t, latest_t - holdout_s
 
 
 def train_candidate(history: History, start: float, end: float, seed: int = 0) -> bytes:
@@ -214,10 +201,13 @@ def train_candidate(history: History, start: float, end: float, seed: int = 0) -
 
 class Judgement(msgspec.Struct, frozen=True, kw_only=True):
     approved: bool
-    reason: str
-    candidate_error: float
-    running_error: float
-    """-1 when no model was running."""
+    code: str = ""
+    """Why not, for counting: ``unservable``, ``no-history``, ``error-above-threshold``,
+    ``not-better`` (empty when approved)."""
+    reason: str = ""
+    candidate_error: float = 0.0
+    running_error: float = -1.0
+    """-1 when no model was running (or it could not be replayed)."""
 
 
 def judge(
@@ -235,38 +225,28 @@ def judge(
         cand = float(errors(candidate, history).mean())
     except ModelError as exc:
         return Judgement(
-            approved=False,
-            reason=f"candidate cannot be served: {exc}",
-            candidate_error=0.0,
-            running_error=-1.0,
+            approved=False, code="unservable", reason=f"candidate cannot be served: {exc}"
         )
     except ValueError as exc:
-        return Judgement(
-            approved=False,
-            reason=f"no history to replay: {exc}",
-            candidate_error=0.0,
-            running_error=-1.0,
-        )
+        return Judgement(approved=False, code="no-history", reason=f"no history to replay: {exc}")
     if not math.isfinite(cand):
-        return Judgement(
-            approved=False,
-            reason="candidate error is not finite",
-            candidate_error=0.0,
-            running_error=-1.0,
-        )
+        return Judgement(approved=False, code="unservable", reason="candidate error is not finite")
     run = -1.0
     if running is not None:
         try:
             run = float(errors(running, history).mean())
         except (ModelError, ValueError):
             run = -1.0  # a running model that cannot be replayed does not protect itself
+    code = reason = ""
     if cand > threshold:
+        code = "error-above-threshold"
         reason = f"replay error {cand:.2f} m is above the threshold {threshold:.2f} m"
-        return Judgement(approved=False, reason=reason, candidate_error=cand, running_error=run)
-    if run >= 0 and cand > run - margin:
+    elif run >= 0 and cand > run - margin:
+        code = "not-better"
         reason = f"replay error {cand:.2f} m is not below the running model's {run:.2f} m"
-        return Judgement(approved=False, reason=reason, candidate_error=cand, running_error=run)
-    return Judgement(approved=True, reason="", candidate_error=cand, running_error=run)
+    return Judgement(
+        approved=not code, code=code, reason=reason, candidate_error=cand, running_error=run
+    )
 
 
 @dataclass(frozen=True)
@@ -295,7 +275,7 @@ class ReplayTwin:
         metrics = {"candidate_error_m": j.candidate_error}
         if j.running_error >= 0:
             metrics["running_error_m"] = j.running_error
-        findings = [] if j.approved else [Finding(code=_code(j.reason), message=j.reason)]
+        findings = [] if j.approved else [Finding(code=j.code, message=j.reason)]
         notes = [] if belief.running is not None else ["no running model to compare with"]
         thin = len(belief.history) < MIN_REPLAY
         if thin:
@@ -311,16 +291,6 @@ class ReplayTwin:
 
 MIN_REPLAY = 300
 """Samples of history below which a replay's verdict is marked as resting on thin belief."""
-
-
-def _code(reason: str) -> str:
-    if reason.startswith("candidate cannot be served"):
-        return "unservable"
-    if "above the threshold" in reason:
-        return "error-above-threshold"
-    if "not below the running" in reason:
-        return "not-better"
-    return "no-history"
 
 
 def history_of(states: Sequence[ShipState]) -> History:

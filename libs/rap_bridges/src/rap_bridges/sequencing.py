@@ -11,12 +11,24 @@ and passes over a number it already took from that sender.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
-from typing import Final
+from collections.abc import Awaitable, Callable, Collection
+from typing import Final, TypeVar
 
-from .core import Deliver, Frame
+import anyio
 
-__all__ = ["HEADER_ACK", "HEADER_SENDER", "HEADER_SEQ", "MAX_SENDERS", "Sequencer"]
+from .core import Deliver, Frame, LinkDown
+
+__all__ = [
+    "HEADER_ACK",
+    "HEADER_SENDER",
+    "HEADER_SEQ",
+    "MAX_SENDERS",
+    "Acks",
+    "Sequencer",
+    "to_every_peer",
+]
+
+P = TypeVar("P")
 
 HEADER_SEQ: Final = "rap-seq"
 HEADER_SENDER: Final = "rap-sender"
@@ -105,3 +117,67 @@ class Sequencer:
                 del seen[next(iter(seen))]
             seen[sender] = seq
         return seq_text
+
+
+class Acks:
+    """What one peer has acknowledged; a sender waits here for its frame's number."""
+
+    __slots__ = ("_changed", "acked", "gone")
+
+    def __init__(self) -> None:
+        self.acked = -1
+        self.gone = False
+        self._changed: anyio.Event | None = None  # made on the event loop, when waited on
+
+    def _wake(self) -> None:
+        if self._changed is not None:
+            self._changed.set()
+            self._changed = None
+
+    def ack(self, seq: int) -> None:
+        if seq > self.acked:
+            self.acked = seq
+            self._wake()
+
+    def leave(self) -> None:
+        """The peer is gone: a sender waiting for it stops waiting."""
+        self.gone = True
+        self._wake()
+
+    async def wait(self, seq: int, name: str, timeout: float) -> None:
+        """Until ``seq`` is acknowledged; :class:`LinkDown` if the peer leaves first or
+        does not acknowledge within ``timeout`` s."""
+        with anyio.move_on_after(timeout):
+            while self.acked < seq:
+                if self.gone:
+                    raise LinkDown(f"{name} left before acknowledging frame {seq}")
+                if self._changed is None:
+                    self._changed = anyio.Event()
+                await self._changed.wait()
+            return
+        raise LinkDown(
+            f"{name} did not acknowledge frame {seq} within {timeout:g} s",
+            "is the peer reading, and does it answer rap-seq with rap-ack?",
+        )
+
+
+async def to_every_peer(
+    peers: Collection[P],
+    send: Callable[[P], Awaitable[None]],
+    drop: Callable[[P, LinkDown], Awaitable[None]],
+    wait_for_one: Callable[[], Awaitable[None]],
+) -> None:
+    """A serving link's send: to every peer connected (each that fails is dropped),
+    waiting for one while there is none, until at least one took it."""
+    while True:
+        while not peers:
+            await wait_for_one()
+        sent = 0
+        for peer in list(peers):
+            try:
+                await send(peer)
+                sent += 1
+            except LinkDown as exc:
+                await drop(peer, exc)
+        if sent:
+            return

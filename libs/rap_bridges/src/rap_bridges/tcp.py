@@ -42,7 +42,7 @@ from anyio.streams.stapled import MultiListener
 from rap_schemas.limits import DECODE_ERRORS
 
 from .core import Deliver, Frame, FrameRefused, LinkContext, LinkDown
-from .sequencing import HEADER_ACK, HEADER_SENDER, HEADER_SEQ, Sequencer
+from .sequencing import HEADER_ACK, HEADER_SENDER, HEADER_SEQ, Acks, Sequencer, to_every_peer
 from .spec import BridgeSpec
 
 __all__ = [
@@ -124,8 +124,7 @@ class _Peer:
     name: str
     reader: BufferedByteReceiveStream = field(init=False)
     lock: anyio.Lock = field(default_factory=anyio.Lock)
-    acked: int = -1
-    ack_changed: anyio.Event = field(default_factory=anyio.Event)
+    acks: Acks = field(default_factory=Acks)
 
     def __post_init__(self) -> None:
         self.reader = BufferedByteReceiveStream(self.stream)
@@ -136,12 +135,6 @@ class _Peer:
                 await self.stream.send(data)
         except (anyio.BrokenResourceError, anyio.ClosedResourceError, OSError) as exc:
             raise LinkDown(f"connection to {self.name} lost: {exc or type(exc).__name__}") from None
-
-    def ack(self, seq: int) -> None:
-        if seq > self.acked:
-            self.acked = seq
-            self.ack_changed.set()
-            self.ack_changed = anyio.Event()
 
 
 def _peer_name(stream: SocketStream) -> str:
@@ -255,6 +248,7 @@ class TcpLink:
             log.info("bridge %s: client %s left: %s", self.ctx.name, peer.name, exc)
         finally:
             self._peers.discard(peer)
+            peer.acks.leave()  # a send waiting for its acknowledgement stops waiting
             with anyio.CancelScope(shield=True):
                 await stream.aclose()
 
@@ -276,7 +270,7 @@ class TcpLink:
             except (anyio.BrokenResourceError, anyio.ClosedResourceError, OSError) as exc:
                 raise LinkDown(f"connection to {peer.name} lost: {exc}") from None
             ack = await self.sequencer.incoming(
-                headers, payload, deliver, self.ctx.reject, peer.ack
+                headers, payload, deliver, self.ctx.reject, peer.acks.ack
             )
             if ack is not None:
                 await peer.write(encode_frame(b"", {HEADER_ACK: ack}))
@@ -303,32 +297,21 @@ class TcpLink:
                 raise LinkDown("not connected")
             await self._send_to(peer, data, seq)
             return
-        while True:  # a server: every client gets it; wait for one while there is none
-            while not self._peers:
-                if self._joined is None or self._joined.is_set():
-                    self._joined = anyio.Event()
-                await self._joined.wait()
-            sent = 0
-            for peer in list(self._peers):
-                try:
-                    await self._send_to(peer, data, seq)
-                    sent += 1
-                except LinkDown as exc:
-                    log.info("bridge %s: client %s dropped: %s", self.ctx.name, peer.name, exc)
-                    self._peers.discard(peer)
-                    await peer.stream.aclose()
-            if sent:
-                return
+        # a server: every client gets it; wait for one while there is none
+
+        async def drop(peer: _Peer, exc: LinkDown) -> None:
+            log.info("bridge %s: client %s dropped: %s", self.ctx.name, peer.name, exc)
+            self._peers.discard(peer)
+            await peer.stream.aclose()
+
+        await to_every_peer(self._peers, lambda p: self._send_to(p, data, seq), drop, self._joining)
+
+    async def _joining(self) -> None:
+        if self._joined is None or self._joined.is_set():
+            self._joined = anyio.Event()
+        await self._joined.wait()
 
     async def _send_to(self, peer: _Peer, data: bytes, seq: int) -> None:
         await peer.write(data)
-        if seq < 0:
-            return
-        with anyio.move_on_after(TIMEOUT_S):
-            while peer.acked < seq:
-                await peer.ack_changed.wait()
-            return
-        raise LinkDown(
-            f"{peer.name} did not acknowledge frame {seq} within {TIMEOUT_S:g} s",
-            "is the peer reading, and does it answer rap-seq with rap-ack?",
-        )
+        if seq >= 0:
+            await peer.acks.wait(seq, peer.name, TIMEOUT_S)

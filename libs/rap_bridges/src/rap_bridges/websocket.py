@@ -64,7 +64,7 @@ from websockets.frames import CloseCode
 from websockets.http11 import Request, Response
 
 from .core import Deliver, Frame, FrameRefused, LinkContext, LinkDown
-from .sequencing import HEADER_ACK, Sequencer
+from .sequencing import HEADER_ACK, Acks, Sequencer, to_every_peer
 from .spec import BridgeSpec
 from .tcp import HEADER_ROOM
 
@@ -163,9 +163,7 @@ class _Peer:
     conn: Connection
     name: str
     lock: anyio.Lock = field(default_factory=anyio.Lock)
-    acked: int = -1
-    gone: bool = False
-    ack_changed: anyio.Event = field(default_factory=anyio.Event)
+    acks: Acks = field(default_factory=Acks)
 
     async def write(self, data: bytes) -> None:
         try:
@@ -180,18 +178,8 @@ class _Peer:
                 "is the peer reading its messages?",
             )
 
-    def _changed(self) -> None:
-        self.ack_changed.set()
-        self.ack_changed = anyio.Event()
-
-    def ack(self, seq: int) -> None:
-        if seq > self.acked:
-            self.acked = seq
-            self._changed()
-
     def leave(self) -> None:
-        self.gone = True
-        self._changed()
+        self.acks.leave()
 
 
 class WebSocketLink:
@@ -403,7 +391,7 @@ class WebSocketLink:
                 self.ctx.reject(str(exc))
                 continue
             ack = await self.sequencer.incoming(
-                headers, payload, deliver, self.ctx.reject, peer.ack
+                headers, payload, deliver, self.ctx.reject, peer.acks.ack
             )
             if ack is not None:
                 await peer.write(encode_message(b"", {HEADER_ACK: ack}))
@@ -430,34 +418,20 @@ class WebSocketLink:
                 raise LinkDown("not connected")
             await self._send_to(peer, data, seq)
             return
-        while True:  # a server: every client gets it; wait for one while there is none
-            while not self._peers:
-                await self._wait_change()
-            sent = 0
-            for peer in list(self._peers):
-                try:
-                    await self._send_to(peer, data, seq)
-                    sent += 1
-                except LinkDown as exc:
-                    log.info("bridge %s: client %s dropped: %s", self.ctx.name, peer.name, exc)
-                    self._peers.discard(peer)
-                    peer.leave()
-                    with anyio.CancelScope(shield=True), anyio.move_on_after(CLOSE_TIMEOUT_S + 1):
-                        await peer.conn.close()
-            if sent:
-                return
+        # a server: every client gets it; wait for one while there is none
+
+        async def drop(peer: _Peer, exc: LinkDown) -> None:
+            log.info("bridge %s: client %s dropped: %s", self.ctx.name, peer.name, exc)
+            self._peers.discard(peer)
+            peer.leave()
+            with anyio.CancelScope(shield=True), anyio.move_on_after(CLOSE_TIMEOUT_S + 1):
+                await peer.conn.close()
+
+        await to_every_peer(
+            self._peers, lambda p: self._send_to(p, data, seq), drop, self._wait_change
+        )
 
     async def _send_to(self, peer: _Peer, data: bytes, seq: int) -> None:
         await peer.write(data)
-        if seq < 0:
-            return
-        with anyio.move_on_after(TIMEOUT_S):
-            while peer.acked < seq:
-                if peer.gone:
-                    raise LinkDown(f"{peer.name} left before acknowledging message {seq}")
-                await peer.ack_changed.wait()
-            return
-        raise LinkDown(
-            f"{peer.name} did not acknowledge message {seq} within {TIMEOUT_S:g} s",
-            "is the peer reading, and does it answer rap-seq with rap-ack?",
-        )
+        if seq >= 0:
+            await peer.acks.wait(seq, peer.name, TIMEOUT_S)

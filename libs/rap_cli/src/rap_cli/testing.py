@@ -8,17 +8,30 @@ as a child process, until the block ends (then ``rap down``, which must stop it 
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from collections.abc import AsyncIterator, Sequence
 from contextlib import asynccontextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 import anyio
-from rap_sdk.fabric import free_port
+from rap_schemas import DeploymentPlan, load_plan
+from rap_sdk.fabric import ZenohConfig, ZenohFabric, free_port, node_overlay
 from rap_sdk.testing import OutputLines, stop_process
 
-__all__ = ["EDGE_ENDPOINT", "model_copy", "rap_command", "rap_up"]
+from .certs_cli import write_certs
+from .deploy import TlsFiles, client_config, render_zenoh, router_config
+
+__all__ = [
+    "EDGE_ENDPOINT",
+    "SecuredRouter",
+    "model_copy",
+    "rap_command",
+    "rap_up",
+    "secured_router",
+]
 
 EDGE_ENDPOINT = "tcp/edge:7447"
 """The lidar model's router endpoint (its edge compute node listens there)."""
@@ -84,3 +97,63 @@ async def rap_up(
                 assert await up.wait() == 0, str(out)
         finally:
             await stop_process(up)  # a failure: it still stops what it started
+
+
+@dataclass
+class SecuredRouter:
+    """A router with mutual TLS and the access control derived from a model."""
+
+    plan: DeploymentPlan
+    certs: Path
+    endpoint: str
+    log: OutputLines
+    """The router's output: its refusals, with the identity."""
+
+    def session(self, identity: str) -> ZenohFabric:
+        """A RAP process's session as ``identity`` (RAP_AS), as rap up configures it."""
+        text = json.dumps(client_config(self.endpoint, secure=True))
+        env = {"RAP_AS": identity, "RAP_CERTS": str(self.certs)}
+        return ZenohFabric(node_overlay(ZenohConfig(), text, env=env))
+
+    async def refusal(self, identity: str, what: str, key: str) -> str:
+        """The router's log line refusing ``identity`` ``what`` on ``key``."""
+        at = await self.log.line(f"refused: {identity} may not {what} (ingress) on {key}")
+        return self.log.lines[at]
+
+
+def _secure(model: Path, folder: Path, node: str) -> tuple[DeploymentPlan, Path, str, Path]:
+    model.write_text(model.read_text() + "\nfabric:\n  tls: true\n  operators: [ops]\n")
+    plan = load_plan(model).plan
+    certs = folder / "certs"
+    write_certs(plan, certs)
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    conf = router_config(plan, node, local=[endpoint], listen=[], tls=TlsFiles.of(certs, node))
+    if conf["access_control"]["default_permission"] != "deny":
+        raise AssertionError("the router's access control must deny by default")
+    path = folder / "router.json5"
+    path.write_text(render_zenoh(conf, title="test router"))
+    return plan, certs, endpoint, path
+
+
+@asynccontextmanager
+async def secured_router(
+    model: Path, folder: Path, *, node: str = "edge"
+) -> AsyncIterator[SecuredRouter]:
+    """``model`` (a file the caller may have edited) with TLS and operators ``[ops]``:
+    certificates for it in ``folder/certs``, and compute node ``node``'s router on a free
+    loopback port with the access control the model derives, until the block ends."""
+    plan, certs, endpoint, path = await anyio.to_thread.run_sync(_secure, model, folder, node)
+    async with (
+        await anyio.open_process(
+            [sys.executable, "-m", "rap_cli.router", "--config", str(path)],
+            stderr=subprocess.STDOUT,
+        ) as proc,
+        anyio.create_task_group() as tg,
+    ):
+        log = OutputLines(proc, timeout=10)
+        tg.start_soon(log.pump)
+        try:
+            await log.line("listening on")
+            yield SecuredRouter(plan, certs, endpoint, log)
+        finally:
+            await stop_process(proc)

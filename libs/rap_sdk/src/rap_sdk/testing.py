@@ -50,6 +50,7 @@ __all__ = [
     "Record",
     "TansuServer",
     "TwoHosts",
+    "accepting",
     "free_port",
     "ip",
     "missing_service",
@@ -430,6 +431,27 @@ class OutputLines:
         return "\n".join(self.lines[-200:])
 
 
+async def accepting(
+    port: int, exited: Callable[[], str | None], *, timeout: float | None = 10.0
+) -> None:
+    """Until a server started by a test accepts TCP connections on 127.0.0.1:``port``.
+    ``exited()`` says why the server's process is gone (None while it runs): then this
+    raises ``RuntimeError`` with that reason instead of waiting on. ``timeout``: seconds
+    (``TimeoutError``), or None for the caller's own deadline."""
+    with anyio.fail_after(timeout):
+        while True:
+            try:
+                stream = await anyio.connect_tcp("127.0.0.1", port)
+            except OSError:
+                reason = exited()
+                if reason is not None:
+                    raise RuntimeError(reason) from None
+                await anyio.sleep(0.02)
+                continue
+            await stream.aclose()
+            return
+
+
 async def stop_process(proc: Any, *, grace: float = 30.0) -> None:
     """Stop a child process a test started, whatever state the test left it in: SIGTERM,
     then SIGKILL after ``grace`` s; shielded, so that a failing or cancelled test still
@@ -566,19 +588,13 @@ class TansuServer:
         finally:
             if out is not subprocess.DEVNULL:
                 await anyio.to_thread.run_sync(out.close)
-        with anyio.fail_after(10):  # ready once it accepts connections
-            while True:
-                try:
-                    stream = await anyio.connect_tcp("127.0.0.1", self.port)
-                except OSError:
-                    if self._proc.returncode is not None:
-                        raise RuntimeError(
-                            f"tansu exited at start ({self._proc.returncode})"
-                        ) from None
-                    await anyio.sleep(0.02)
-                    continue
-                await stream.aclose()
-                return
+        proc = self._proc  # ready once it accepts connections
+        await accepting(
+            self.port,
+            lambda: (
+                None if proc.returncode is None else f"tansu exited at start ({proc.returncode})"
+            ),
+        )
 
     async def stop(self) -> None:
         """Kill it: on SIGTERM Tansu waits 5 s for its clients to leave, and in memory

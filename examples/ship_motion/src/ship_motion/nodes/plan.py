@@ -39,7 +39,7 @@ import anyio.to_thread
 from rap_sdk.knowledge import KnowledgeError
 
 from ..learn import TrainingError, bad_model, evaluate
-from ..loop import MODEL_NAME, Collector, train_candidate
+from ..loop import MODEL_NAME, train_candidate, training_due, training_window
 from ..physics import History
 from ..service import pose_history
 
@@ -129,15 +129,15 @@ async def send_proposal(ctx: Context, msg: messages.ModelPlan) -> None:
 async def on_new_data(ctx: Context) -> None:
     """Input new_data: event 'new-data' (no payload)."""
     # region user: on_new_data
-    collector = _collector(ctx)
     if state.training or state.awaiting or state.anomaly_t is None:
         return  # training, or waiting for Legitimate's verdict, or nothing to answer
     latest = await ctx.kb.read("ship_pose", messages.Pose, default=None)
-    if latest is None or not collector.due(latest.t):
+    cfg = ctx.config
+    if latest is None or not training_due(state.anomaly_t, state.attempts, latest.t, cfg.collect_s):
         return
     state.training = True  # the handler awaits training in a worker thread; events wait
     try:
-        await _retrain(ctx, collector, latest.t)
+        await _retrain(ctx, latest.t)
     finally:
         state.training = False
     # endregion user: on_new_data
@@ -189,14 +189,7 @@ async def on_verdict(ctx: Context, msg: messages.Verdict) -> None:
 
 
 # region user: code
-def _collector(ctx: Context) -> Collector:
-    cfg = ctx.config
-    c = Collector(collect_s=cfg.collect_s, holdout_s=cfg.holdout_s, attempts=state.attempts)
-    c.anomaly_t = state.anomaly_t
-    return c
-
-
-async def _retrain(ctx: Context, collector: Collector, latest_t: float) -> None:
+async def _retrain(ctx: Context, latest_t: float) -> None:
     cfg, kb = ctx.config, ctx.kb.client
     assert state.anomaly_t is not None
     try:
@@ -204,7 +197,7 @@ async def _retrain(ctx: Context, collector: Collector, latest_t: float) -> None:
         for kind in cfg.plant:
             data = await _planted(ctx, kind, history)
             await _propose(ctx, data, history, (state.anomaly_t, latest_t), planted=kind)
-        start, end = collector.window(latest_t)
+        start, end = training_window(state.anomaly_t, latest_t, cfg.holdout_s)
         data = await anyio.to_thread.run_sync(
             partial(train_candidate, history, start, end, cfg.seed)
         )
@@ -213,7 +206,6 @@ async def _retrain(ctx: Context, collector: Collector, latest_t: float) -> None:
         return
     state.awaiting = await _propose(ctx, data, history, (start, end))
     state.real.append(state.awaiting)
-    state.attempts = collector.attempts  # unchanged until the verdict comes
 
 
 async def _planted(ctx: Context, kind: str, history: History) -> bytes:

@@ -45,10 +45,11 @@ from aiokafka.errors import (  # type: ignore[import-untyped]
     RecordTooLargeError,
 )
 from anyio.abc import TaskGroup, TaskStatus
-from rap_schemas import KbRecord, ModelMeta
+from rap_schemas import KbRecord
 
 from ..errors import BadRequest, StoreUnavailable
 from ..ports import Applied
+from .layered import Layered
 from .sqlite_store import SqliteStore
 
 __all__ = ["DEFAULT_PORT", "DEFAULT_URL", "KafkaStore", "default_topic", "parse_url"]
@@ -99,11 +100,13 @@ def check_topic(topic: str) -> str:
     return topic
 
 
-class KafkaStore:
+class KafkaStore(Layered):
     """A :class:`~knowledge.ports.Store`: ``inner`` (a SQLite store opened with
     ``outbox=True``, which this store closes with itself) keeps knowledge, and a task of
     this store sends its outbox to ``topic`` at the Kafka broker ``url``. Use it as an
     async context manager (the task runs inside it)."""
+
+    _inner: SqliteStore
 
     def __init__(
         self,
@@ -286,26 +289,3 @@ class KafkaStore:
 
     async def get(self, key: str) -> KbRecord | None:
         return await self._inner.get(key)
-
-    async def history(
-        self, key: str, *, since: int | None, until: int | None, limit: int
-    ) -> list[KbRecord]:
-        return await self._inner.history(key, since=since, until=until, limit=limit)
-
-    async def keys(self, pattern: str) -> list[str]:
-        return await self._inner.keys(pattern)
-
-    async def put_model(self, meta: ModelMeta, data: bytes) -> None:
-        await self._inner.put_model(meta, data)
-
-    async def get_model(self, name: str, version: int) -> tuple[ModelMeta, bytes] | None:
-        return await self._inner.get_model(name, version)
-
-    async def list_models(self, name: str) -> list[ModelMeta]:
-        return await self._inner.list_models(name)
-
-    async def set_pin(self, name: str, version: int | None) -> None:
-        await self._inner.set_pin(name, version)
-
-    async def get_pin(self, name: str) -> int | None:
-        return await self._inner.get_pin(name)

@@ -42,11 +42,12 @@ import aiomcache
 import anyio
 import msgspec
 from aiomcache.pool import Connection
-from rap_schemas import KbRecord, ModelMeta
+from rap_schemas import KbRecord
 
 from ..core import check_deadline
 from ..errors import BadRequest, Conflict, OutcomeUnknown, StoreUnavailable
 from ..ports import Applied, Store
+from .layered import Layered
 
 __all__ = ["DEFAULT_URL", "MemcachedStore", "item_key", "parse_url"]
 
@@ -132,7 +133,7 @@ class _ItemTooLarge(Exception):
     """memcached refused an item as larger than its item size."""
 
 
-class MemcachedStore:
+class MemcachedStore(Layered):
     """A :class:`~knowledge.ports.Store` whose latest values live in memcached at ``url``
     and everything else in ``inner`` (which this store closes with itself)."""
 
@@ -397,29 +398,6 @@ class MemcachedStore:
         return rec
 
     # -- the inner store: history, keys, models ---------------------------------------------
-
-    async def history(
-        self, key: str, *, since: int | None, until: int | None, limit: int
-    ) -> list[KbRecord]:
-        return await self._inner.history(key, since=since, until=until, limit=limit)
-
-    async def keys(self, pattern: str) -> list[str]:
-        return await self._inner.keys(pattern)
-
-    async def put_model(self, meta: ModelMeta, data: bytes) -> None:
-        await self._inner.put_model(meta, data)
-
-    async def get_model(self, name: str, version: int) -> tuple[ModelMeta, bytes] | None:
-        return await self._inner.get_model(name, version)
-
-    async def list_models(self, name: str) -> list[ModelMeta]:
-        return await self._inner.list_models(name)
-
-    async def set_pin(self, name: str, version: int | None) -> None:
-        await self._inner.set_pin(name, version)
-
-    async def get_pin(self, name: str) -> int | None:
-        return await self._inner.get_pin(name)
 
     @property
     def item_size_max(self) -> int:
